@@ -1,0 +1,23 @@
+# srfpipe: posed RGB captures -> Semantic Radiance Field simulators.
+# Build one scene:   snakemake --cores 2 results/orchard/occupancy.zarr
+# Build every scene: snakemake --cores 2
+from snakemake.utils import min_version
+
+min_version("9.0")
+
+
+configfile: "config/config.yaml"
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/capture.smk"
+include: "workflow/rules/images.smk"
+include: "workflow/rules/segment.smk"
+include: "workflow/rules/train.smk"
+include: "workflow/rules/occupancy.smk"
+
+
+rule all:
+    input:
+        get_final_output(),
+    default_target: True

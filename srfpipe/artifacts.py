@@ -1,0 +1,164 @@
+"""Zarr artifacts: atomic creation, provenance, and checked opening.
+
+Every stage writes exactly one Zarr group (a directory). Its root attributes carry one versioned
+namespace::
+
+    {"srfpipe": {"schema_version": 1, "stage": "downscale", "complete": true,
+                 "config": {...values the stage used...},
+                 "inputs": [{"path": "results/orchard/poses.zarr", "stage": "poses"}],
+                 "versions": {"srfpipe": "0.1.0", "zarr": "3.1.6", ...},
+                 "created": "2026-11-22T01:00:00+00:00", ...stage-specific keys...}}
+
+An artifact is built in a hidden sibling directory and renamed into place only when the stage
+finishes, so an interrupted stage never leaves anything that a later rule could mistake for done.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+import shutil
+import sys
+import uuid
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+import zarr
+
+SCHEMA_VERSION = 1
+NAMESPACE = "srfpipe"
+_VERSIONED_PACKAGES = ("numpy", "zarr", "torch", "cv2", "pycolmap", "onnxruntime", "open3d")
+
+
+class ArtifactError(RuntimeError):
+    """An artifact is missing, incomplete, of the wrong stage or of an unknown schema version."""
+
+
+def package_versions() -> dict[str, str]:
+    """Versions of srfpipe and of the heavy libraries this process has imported."""
+    from srfpipe import __version__
+
+    versions = {"srfpipe": __version__, "python": sys.version.split()[0]}
+    for name in _VERSIONED_PACKAGES:
+        module = sys.modules.get(name)
+        if module is not None:
+            versions[name] = str(getattr(module, "__version__", "unknown"))
+    return versions
+
+
+def _jsonable(value: Any) -> Any:
+    """Convert numpy scalars/arrays and paths to plain JSON types (Zarr attributes are JSON)."""
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist())
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, float) and not np.isfinite(value):
+        raise ValueError(f"non-finite value {value!r} cannot be stored in artifact attributes")
+    return value
+
+
+def provenance(stage: str, config: dict | None, inputs: list[str | Path] | None, **extra) -> dict:
+    """The `srfpipe` attribute namespace for a new artifact (complete=False until committed)."""
+    recorded_inputs = []
+    for path in inputs or []:
+        entry: dict[str, Any] = {"path": str(path)}
+        try:
+            entry["stage"] = read_provenance(path).get("stage")
+        except (ArtifactError, FileNotFoundError, ValueError, KeyError, OSError):
+            pass  # a raw input (a capture folder, a model file) has no provenance of its own
+        recorded_inputs.append(entry)
+    return _jsonable(
+        {
+            "schema_version": SCHEMA_VERSION,
+            "stage": stage,
+            "complete": False,
+            "config": config or {},
+            "inputs": recorded_inputs,
+            "versions": package_versions(),
+            "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            **extra,
+        }
+    )
+
+
+@contextmanager
+def create_artifact(
+    path: str | Path,
+    stage: str,
+    config: dict | None = None,
+    inputs: list[str | Path] | None = None,
+    **extra,
+) -> Iterator[zarr.Group]:
+    """Create a Zarr group at `path` atomically and yield it for writing.
+
+    The group lives in a hidden sibling directory until the `with` block ends without an error;
+    then it is marked complete and renamed to `path` (replacing an older artifact). On an error
+    the partial directory is deleted and the error propagates.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.partial-{uuid.uuid4().hex[:8]}")
+    group = zarr.open_group(str(tmp), mode="w")
+    group.attrs[NAMESPACE] = provenance(stage, config, inputs, **extra)
+    try:
+        yield group
+        meta = dict(group.attrs[NAMESPACE])
+        meta["complete"] = True
+        group.attrs[NAMESPACE] = _jsonable(meta)
+        if path.exists():
+            shutil.rmtree(path)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def update_attrs(group: zarr.Group, **values) -> None:
+    """Merge stage-specific keys into the group's `srfpipe` namespace."""
+    meta = dict(group.attrs[NAMESPACE])
+    meta.update(_jsonable(values))
+    group.attrs[NAMESPACE] = meta
+
+
+def read_provenance(path: str | Path) -> dict:
+    """The `srfpipe` namespace of an artifact, without checking it."""
+    group = zarr.open_group(str(path), mode="r")
+    return dict(group.attrs[NAMESPACE])
+
+
+def open_artifact(path: str | Path, stage: str | tuple[str, ...] | None = None) -> zarr.Group:
+    """Open a finished artifact read-only, with a clear error when it is not one.
+
+    `stage` names the stage (or stages) expected to have written it.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise ArtifactError(f"{path}: artifact does not exist")
+    try:
+        group = zarr.open_group(str(path), mode="r")
+        meta = dict(group.attrs[NAMESPACE])
+    except Exception as exc:  # zarr raises several types for a folder that is not a group
+        raise ArtifactError(f"{path}: not a srfpipe Zarr artifact ({exc})") from exc
+    if meta.get("schema_version") != SCHEMA_VERSION:
+        raise ArtifactError(
+            f"{path}: schema version {meta.get('schema_version')!r}, this srfpipe reads {SCHEMA_VERSION}"
+        )
+    if not meta.get("complete", False):
+        raise ArtifactError(f"{path}: artifact is incomplete (its stage did not finish)")
+    expected = (stage,) if isinstance(stage, str) else stage
+    if expected is not None and meta.get("stage") not in expected:
+        raise ArtifactError(f"{path}: written by stage {meta.get('stage')!r}, expected {expected}")
+    return group
+
+
+def meta(group: zarr.Group) -> dict:
+    """The `srfpipe` namespace of an open group."""
+    return dict(group.attrs[NAMESPACE])

@@ -1,0 +1,131 @@
+"""Cameras: the one convention used inside srfpipe, rays from pixels, and scene normalization.
+
+Convention (everywhere inside the project; importers and exporters convert at the border):
+
+* Camera frame is OpenCV's: +x right, +y down, +z forward (looking direction).
+* A pose is `camera_to_world`, a 4x4 matrix T with x_world = T @ x_camera.
+* World units are metres for the built-in orchard, and whatever the capture used otherwise.
+* Pixels: (u, v) with u along the width, v along the height; the centre of pixel (0, 0) is (0.5, 0.5).
+  Intrinsics are `fx, fy, cx, cy` in that pixel frame (cx = width / 2 for a centred principal point).
+* The *scene* frame is the world scaled and shifted so that the scene bounds fit in [-1, 1]^3:
+  x_scene = s * (x_world - c). `scene_from_world` (4x4) is stored in poses.zarr and copied into
+  every later artifact that holds geometry, so every output maps back to world units.
+
+nerfstudio / Blender / OpenGL cameras look down -z with +y up: `opengl_to_opencv` flips y and z.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def opengl_to_opencv(camera_to_world: np.ndarray) -> np.ndarray:
+    """Convert camera-to-world poses (…, 4, 4) from the OpenGL camera frame to OpenCV's."""
+    return np.asarray(camera_to_world, dtype=np.float64) @ OPENGL_TO_OPENCV
+
+
+def opencv_to_opengl(camera_to_world: np.ndarray) -> np.ndarray:
+    """Inverse of `opengl_to_opencv` (the flip is its own inverse)."""
+    return np.asarray(camera_to_world, dtype=np.float64) @ OPENGL_TO_OPENCV
+
+
+def intrinsic_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]."""
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def scale_intrinsics(intrinsics: np.ndarray, sx: float, sy: float | None = None) -> np.ndarray:
+    """Intrinsics (…, 4) = (fx, fy, cx, cy) for an image resized by (sx, sy).
+
+    With pixel centres at +0.5 the principal point scales exactly: cx' = sx * cx.
+    """
+    sy = sx if sy is None else sy
+    out = np.array(intrinsics, dtype=np.float64, copy=True)
+    out[..., 0] *= sx
+    out[..., 2] *= sx
+    out[..., 1] *= sy
+    out[..., 3] *= sy
+    return out
+
+
+def pixel_rays(
+    camera_to_world: np.ndarray, intrinsics: np.ndarray, width: int, height: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """World-space rays through every pixel centre of one pinhole camera.
+
+    Returns origins and unit directions, each (height, width, 3), row-major like the image.
+    """
+    fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
+    u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    directions_cam = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], axis=-1)
+    rotation = np.asarray(camera_to_world, dtype=np.float64)[:3, :3]
+    directions = directions_cam @ rotation.T
+    directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
+    origins = np.broadcast_to(np.asarray(camera_to_world)[:3, 3], directions.shape).copy()
+    return origins, directions
+
+
+def project_points(points_world: np.ndarray, camera_to_world: np.ndarray, intrinsics: np.ndarray):
+    """Project world points (M, 3) into one camera: pixel coords (M, 2) and depth along +z (M,)."""
+    world_to_camera = np.linalg.inv(np.asarray(camera_to_world, dtype=np.float64))
+    p = np.asarray(points_world, dtype=np.float64) @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
+    fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
+    z = p[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = np.stack([fx * p[:, 0] / z + cx, fy * p[:, 1] / z + cy], axis=-1)
+    return uv, z
+
+
+def scene_from_world_transform(bounds_min: np.ndarray, bounds_max: np.ndarray) -> np.ndarray:
+    """The similarity (4x4) that maps the axis-aligned world box into [-1, 1]^3.
+
+    One uniform scale (the box's largest half-extent becomes 1) keeps angles and aspect ratios.
+    """
+    bounds_min = np.asarray(bounds_min, dtype=np.float64)
+    bounds_max = np.asarray(bounds_max, dtype=np.float64)
+    if not (np.all(np.isfinite(bounds_min)) and np.all(np.isfinite(bounds_max))):
+        raise ValueError(f"scene bounds must be finite, got {bounds_min} .. {bounds_max}")
+    if np.any(bounds_max <= bounds_min):
+        raise ValueError(f"scene bounds are empty: min {bounds_min} is not below max {bounds_max}")
+    centre = 0.5 * (bounds_min + bounds_max)
+    scale = 1.0 / (0.5 * np.max(bounds_max - bounds_min))
+    transform = np.eye(4)
+    transform[:3, :3] *= scale
+    transform[:3, 3] = -scale * centre
+    return transform
+
+
+def transform_points(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 affine transform to points (…, 3)."""
+    transform = np.asarray(transform, dtype=np.float64)
+    return np.asarray(points) @ transform[:3, :3].T + transform[:3, 3]
+
+
+def transform_poses(transform: np.ndarray, camera_to_world: np.ndarray) -> np.ndarray:
+    """Map camera-to-world poses (…, 4, 4) through a similarity transform, keeping rotations orthonormal.
+
+    The translation goes through the full transform; the rotation only through its rotation part,
+    so a uniformly scaled frame stays a proper camera pose.
+    """
+    transform = np.asarray(transform, dtype=np.float64)
+    scale = np.cbrt(np.linalg.det(transform[:3, :3]))
+    rotation = transform[:3, :3] / scale
+    poses = np.array(camera_to_world, dtype=np.float64, copy=True)
+    poses[..., :3, :3] = rotation @ poses[..., :3, :3]
+    poses[..., :3, 3] = transform_points(transform, poses[..., :3, 3])
+    return poses
+
+
+def check_rotation(matrix: np.ndarray, tolerance: float = 1e-3) -> str | None:
+    """Why a 3x3 matrix is not a proper rotation, or None when it is."""
+    matrix = np.asarray(matrix, dtype=np.float64)
+    if not np.all(np.isfinite(matrix)):
+        return "contains NaN or infinite values"
+    orthogonality = np.abs(matrix @ matrix.T - np.eye(3)).max()
+    if orthogonality > tolerance:
+        return f"is not orthonormal (|R R^T - I| = {orthogonality:.3g})"
+    if np.linalg.det(matrix) < 0:
+        return "is a reflection (det < 0)"
+    return None

@@ -1,0 +1,63 @@
+# Config loading and validation, scene table, and the small helpers the rules share.
+import json
+from pathlib import Path
+
+from snakemake.utils import validate
+
+from srfpipe.config import ConfigError, load_scene
+
+
+validate(config, schema="../schemas/config.schema.yaml")
+
+RESULTS = config["results_dir"]
+SCENES_DIR = Path(config["scenes_dir"])
+
+
+def _load_scenes():
+    if not SCENES_DIR.is_dir():
+        raise WorkflowError(f"scenes_dir {SCENES_DIR}: folder does not exist")
+    scenes = {}
+    for path in sorted(SCENES_DIR.glob("*.yaml")):
+        try:
+            scenes[path.stem] = load_scene(path)
+        except ConfigError as exc:
+            raise WorkflowError(str(exc)) from None
+    return scenes
+
+
+SCENES = _load_scenes()
+SCENE_NAMES = config["scenes"] or sorted(SCENES)
+for _name in SCENE_NAMES:
+    if _name not in SCENES:
+        raise WorkflowError(f"config scenes: no scene file {SCENES_DIR / (_name + '.yaml')}")
+
+
+wildcard_constraints:
+    scene="|".join(sorted(SCENES)) or "NO_SCENES",
+
+
+ARTIFACTS = {
+    "poses": "poses.zarr",
+    "images": "images.zarr",
+    "labels": "labels.zarr",
+    "srf": "srf.zarr",
+    "eval": "eval",
+    "occupancy": "occupancy.zarr",
+}
+
+
+def get_final_output():
+    return [f"{RESULTS}/{scene}/{ARTIFACTS[config['final_artifact']]}" for scene in SCENE_NAMES]
+
+
+def scene_section(section):
+    """A params function: the scene's validated section as a JSON string (a rerun trigger)."""
+    return lambda wildcards: json.dumps(SCENES[wildcards.scene][section], sort_keys=True)
+
+
+def capture_dir(wildcards):
+    """The capture folder: generated for the built-in orchard, a folder on disk otherwise."""
+    source = SCENES[wildcards.scene]["source"]
+    if source["format"] == "orchard":
+        return f"{RESULTS}/{wildcards.scene}/capture"
+    return source["path"]

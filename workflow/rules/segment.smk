@@ -1,0 +1,1 @@
+# Rules of the segment stage(s): see srfpipe/ for the code; rules stay thin.
