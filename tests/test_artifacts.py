@@ -1,0 +1,46 @@
+"""Artifacts are written atomically and carry provenance."""
+
+import numpy as np
+import pytest
+
+from srfpipe.artifacts import ArtifactError, create_artifact, open_artifact, read_provenance
+
+
+def test_artifact_round_trip_with_provenance(tmp_path):
+    path = tmp_path / "a.zarr"
+    with create_artifact(path, "demo", config={"factor": 4}, inputs=[tmp_path / "raw"]) as group:
+        group.create_array("x", data=np.arange(6).reshape(2, 3))
+    group = open_artifact(path, stage="demo")
+    meta = read_provenance(path)
+    assert meta["complete"] and meta["stage"] == "demo" and meta["config"] == {"factor": 4}
+    assert meta["versions"]["srfpipe"] and meta["inputs"][0]["path"].endswith("raw")
+    np.testing.assert_array_equal(group["x"][:], np.arange(6).reshape(2, 3))
+
+
+def test_interrupted_stage_leaves_nothing(tmp_path):
+    path = tmp_path / "a.zarr"
+    with pytest.raises(KeyboardInterrupt):
+        with create_artifact(path, "demo") as group:
+            group.create_array("x", data=np.zeros(3))
+            raise KeyboardInterrupt
+    assert not path.exists()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_wrong_stage_and_missing_artifact_are_clear(tmp_path):
+    path = tmp_path / "a.zarr"
+    with create_artifact(path, "poses"):
+        pass
+    with pytest.raises(ArtifactError, match="expected"):
+        open_artifact(path, stage="downscale")
+    with pytest.raises(ArtifactError, match="does not exist"):
+        open_artifact(tmp_path / "missing.zarr")
+    (tmp_path / "junk.zarr").mkdir()
+    with pytest.raises(ArtifactError, match="junk.zarr"):
+        open_artifact(tmp_path / "junk.zarr")
+
+
+def test_non_finite_attributes_are_refused(tmp_path):
+    with pytest.raises(ValueError, match="non-finite"):
+        with create_artifact(tmp_path / "a.zarr", "demo", config={"x": float("nan")}):
+            pass

@@ -1,0 +1,53 @@
+"""Scene config validation: defaults, clear errors naming the file and the key."""
+
+import pytest
+
+from srfpipe.config import ConfigError, load_scene, section_defaults, validate_scene
+
+
+def test_defaults_are_filled_in_and_not_shared():
+    a = validate_scene({})
+    b = validate_scene({})
+    assert a["images"]["downscale"] == 4
+    assert a["segmentation"]["prompts"] == ["apple", "branch", "leaf"]
+    a["orchard"]["ring_heights"].append(9.0)
+    assert b["orchard"]["ring_heights"] != a["orchard"]["ring_heights"]
+
+
+def test_builtin_orchard_scene_is_valid():
+    from tests.conftest import REPO
+
+    scene = load_scene(REPO / "config" / "scenes" / "orchard.yaml")
+    assert scene["source"]["format"] == "orchard"
+    assert scene["images"]["downscale"] == 4
+
+
+def test_error_names_file_and_key(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text("poses:\n  refine: yes_please\n")
+    with pytest.raises(ConfigError) as err:
+        load_scene(path)
+    assert str(path) in str(err.value) and "poses.refine" in str(err.value)
+
+
+def test_unknown_key_and_format_are_rejected(tmp_path):
+    path = tmp_path / "typo.yaml"
+    path.write_text("source: {format: ply, path: x}\nimagez: {downscale: 2}\n")
+    with pytest.raises(ConfigError) as err:
+        load_scene(path)
+    message = str(err.value)
+    assert "source.format" in message and "imagez" in message
+
+
+def test_real_capture_requires_a_path():
+    with pytest.raises(ConfigError, match="path"):
+        validate_scene({"source": {"format": "nerfstudio"}}, "s.yaml")
+
+
+def test_missing_scene_file(tmp_path):
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_scene(tmp_path / "nope.yaml")
+
+
+def test_section_defaults():
+    assert section_defaults("poses")["refine"] == "none"
