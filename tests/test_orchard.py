@@ -1,0 +1,158 @@
+"""The built-in orchard generator: determinism, ground-truth consistency, nerfstudio layout, CLI."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from srfpipe.cameras import opengl_to_opencv, pixel_rays, project_points
+from srfpipe.scenes.orchard import generate_orchard
+
+TINY = {"views": 12, "width": 128, "height": 96, "n_apples": 10, "seed": 3}
+
+
+def _read_capture(folder):
+    transforms = json.loads((folder / "transforms.json").read_text())
+    gt = folder / "ground_truth"
+    frames = transforms["frames"]
+    stems = [f["file_path"].split("/")[-1].rsplit(".", 1)[0] for f in frames]
+    return {
+        "transforms": transforms,
+        "poses": np.array([opengl_to_opencv(np.array(f["transform_matrix"])) for f in frames]),
+        "intrinsics": np.array([transforms[k] for k in ("fl_x", "fl_y", "cx", "cy")]),
+        "images": [cv2.imread(str(folder / f["file_path"]), cv2.IMREAD_COLOR) for f in frames],
+        "labels": [cv2.imread(str(gt / "labels" / f"{s}.png"), cv2.IMREAD_UNCHANGED) for s in stems],
+        "depth": [np.load(gt / "depth" / f"{s}.npy") for s in stems],
+        "apples": json.loads((gt / "apples.json").read_text()),
+        "scene": json.loads((gt / "scene.json").read_text()),
+    }
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    folder = generate_orchard(tmp_path_factory.mktemp("orchard") / "capture", progress=False, **TINY)
+    return folder, _read_capture(folder)
+
+
+def test_layout_and_atomic_write(tiny):
+    folder, cap = tiny
+    assert sorted(p.name for p in folder.parent.iterdir()) == ["capture"], "temp folder left behind"
+    assert len(cap["images"]) == TINY["views"]
+    for image, label, depth in zip(cap["images"], cap["labels"], cap["depth"]):
+        assert image.shape == (96, 128, 3) and image.dtype == np.uint8
+        assert label.shape == (96, 128) and label.dtype == np.uint8
+        assert depth.shape == (96, 128) and depth.dtype == np.float32
+    for name in ("apple", "branch", "leaf", "ground"):
+        assert (folder / "ground_truth" / "meshes" / f"{name}.ply").stat().st_size > 0
+    assert cap["scene"]["classes"] == ["background", "apple", "branch", "leaf"]
+    assert len(cap["apples"]) == TINY["n_apples"]
+    assert all(a["radius"] == pytest.approx(0.04) for a in cap["apples"])
+
+
+def test_transforms_json_is_nerfstudio_and_looks_at_the_tree(tiny):
+    _, cap = tiny
+    t = cap["transforms"]
+    assert t["camera_model"] == "OPENCV"
+    assert (t["w"], t["h"]) == (128, 96)
+    assert t["cx"] == 64.0 and t["cy"] == 48.0
+    assert all(t[k] == 0.0 for k in ("k1", "k2", "p1", "p2"))
+    assert t["frames"][0]["file_path"] == "images/frame_00000.png"
+    # nerfstudio/OpenGL: the camera looks down its -z axis, with +y up
+    gl = np.array(t["frames"][0]["transform_matrix"])
+    to_tree = np.array([0.0, 0.0, 1.2]) - gl[:3, 3]
+    assert np.dot(-gl[:3, 2], to_tree / np.linalg.norm(to_tree)) > 0.95
+    assert gl[2, 1] > 0.8, "camera +y should point roughly up in the world"
+    # the trunk at mid height projects near the image centre
+    uv, z = project_points(np.array([[0.0, 0.0, 1.2]]), cap["poses"][0], cap["intrinsics"])
+    assert z[0] > 0 and abs(uv[0, 0] - 64) < 10 and abs(uv[0, 1] - 48) < 30
+
+
+def test_labels_cover_all_classes(tiny):
+    _, cap = tiny
+    present = set(np.unique(np.concatenate([label.ravel() for label in cap["labels"]])).tolist())
+    assert present == {0, 1, 2, 3}
+
+
+def test_depth_back_projects_onto_the_apples(tiny):
+    """Every apple pixel, lifted to 3D with its depth and pose, lies on the surface of an apple."""
+    _, cap = tiny
+    centres = np.array([a["centre"] for a in cap["apples"]])
+    radius = cap["apples"][0]["radius"]
+    lo, hi = (np.array(b) for b in cap["scene"]["bounds_world"])
+    n_apple_pixels = 0
+    for pose, label, depth in zip(cap["poses"], cap["labels"], cap["depth"]):
+        origins, directions = pixel_rays(pose, cap["intrinsics"], 128, 96)
+        t = depth / (directions @ pose[:3, 2])  # z-depth -> distance along the unit ray
+        points = origins + t[..., None] * directions
+        apple = label == 1
+        n_apple_pixels += apple.sum()
+        dist = np.linalg.norm(points[apple][:, None] - centres[None], axis=-1).min(1)
+        assert np.all(np.abs(dist - radius) < 0.004)
+        tree_pixels = label >= 1
+        assert np.all((points[tree_pixels] >= lo) & (points[tree_pixels] <= hi))
+        assert np.all(depth[tree_pixels] > 0) and np.all(np.isfinite(depth))
+        sky = depth == 0
+        assert np.all(label[sky] == 0)
+        assert np.all(directions[sky][:, 2] > -0.02), "rays that miss everything must point at the sky"
+    assert n_apple_pixels > 50
+
+
+def test_most_apples_are_visible_somewhere(tiny):
+    _, cap = tiny
+    seen = np.zeros(len(cap["apples"]), bool)
+    centres = np.array([a["centre"] for a in cap["apples"]])
+    for pose, label in zip(cap["poses"], cap["labels"]):
+        uv, z = project_points(centres, pose, cap["intrinsics"])
+        ij = np.floor(uv).astype(int)
+        inside = (z > 0) & (ij[:, 0] >= 0) & (ij[:, 0] < 128) & (ij[:, 1] >= 0) & (ij[:, 1] < 96)
+        hits = np.zeros(len(centres), bool)
+        hits[inside] = label[ij[inside, 1], ij[inside, 0]] == 1
+        seen |= hits
+    assert seen.mean() >= 0.7, f"only {seen.sum()} of {len(seen)} apples visible in any view"
+
+
+def test_deterministic_by_seed(tiny, tmp_path):
+    folder, cap = tiny
+    again = _read_capture(generate_orchard(tmp_path / "same", progress=False, **TINY))
+    for a, b in zip(cap["images"], again["images"]):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(cap["labels"], again["labels"]):
+        np.testing.assert_array_equal(a, b)
+    assert cap["apples"] == again["apples"]
+    other = _read_capture(generate_orchard(tmp_path / "other", progress=False, **{**TINY, "seed": 4}))
+    assert other["apples"] != cap["apples"]
+    assert np.mean(np.abs(other["images"][0].astype(int) - cap["images"][0].astype(int))) > 5
+
+
+def test_render_has_enough_sift_features(tmp_path):
+    """COLMAP refinement needs texture: a full-size render must give SIFT plenty of keypoints."""
+    folder = generate_orchard(tmp_path / "full", progress=False, views=2, n_apples=8)
+    gray = cv2.imread(str(folder / "images" / "frame_00000.png"), cv2.IMREAD_GRAYSCALE)
+    assert gray.shape == (480, 640)
+    keypoints = cv2.SIFT_create().detect(gray, None)
+    assert len(keypoints) > 100
+
+
+def test_cli_help():
+    result = subprocess.run([sys.executable, "-m", "srfpipe.cli", "orchard", "--help"],
+                            capture_output=True, text=True, check=True)
+    assert "--options" in result.stdout and "--out" in result.stdout and "n_apples" in result.stdout
+
+
+def test_cli_bad_option_gives_clear_error(tmp_path, capsys):
+    from srfpipe.cli import main
+
+    out = tmp_path / "bad"
+    assert main(["orchard", "--options", '{"views": 1}', "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "views" in err and "minimum" in err.lower() or "less than" in err
+    assert main(["orchard", "--options", '{"n_trees": 3}', "--out", str(out)]) == 1
+    assert "n_trees" in capsys.readouterr().err
+    assert not out.exists()
+    with pytest.raises(ValueError, match="n_apples"):
+        generate_orchard(out, n_apples=-1)
