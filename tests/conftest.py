@@ -60,7 +60,7 @@ class Workflow:
 
     def dry_run_jobs(self, *targets: str) -> dict[str, int]:
         """Rule name -> job count that a dry run (`-n`) would execute."""
-        result = self.run("-n", "--quiet", "rules", *targets)
+        result = self.run("-n", *targets)
         jobs: dict[str, int] = {}
         in_table = False
         for line in result.stdout.splitlines():
