@@ -24,7 +24,8 @@ STAGES = [
 ]
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
+    """The argument parser; only the `selected` stage's module is imported (keeps --help fast)."""
     from srfpipe import __version__
 
     parser = argparse.ArgumentParser(
@@ -36,12 +37,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="stage", metavar="STAGE")
     for name, module_name, help_text in STAGES:
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as exc:
-            if exc.name and exc.name.startswith("srfpipe"):
-                continue  # stage not built yet in this checkout
-            raise
+        if name != selected:
+            sub.add_parser(name, help=help_text)
+            continue
+        module = importlib.import_module(module_name)
         stage_parser = sub.add_parser(
             name, help=help_text, description=(module.__doc__ or help_text).strip().split("\n\n")[0],
             formatter_class=argparse.ArgumentDefaultsHelpFormatter,
@@ -52,7 +51,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    stage_names = {name for name, _, _ in STAGES}
+    selected = next((arg for arg in argv if arg in stage_names), None)
+    parser = build_parser(selected)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
