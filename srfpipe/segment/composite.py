@@ -1,0 +1,177 @@
+"""Composite the per-prompt masks into labels.zarr: a label image and multi-hot bits per frame.
+
+Class values follow the prompt order of the scene (the paper's: background 0, apple 1, branch 2,
+leaf 3); the masks are passed in that order. A pixel is in class c when p_c >= t_c (the prompt's
+threshold). The label image, which holds one class per pixel, resolves overlaps by taking the class
+with the highest probability among those above their thresholds (the earlier prompt wins a tie);
+a pixel above no threshold is background (0). The multi-hot bits keep every class a pixel is in,
+for the C independent semantic heads.
+
+A class that no frame contains (at most `labels.min_pixels` pixels over all frames) is reported,
+recorded in `dropped_classes` and left out of the label image, the multi-hot channels and
+`classes`, unless `labels.keep_empty_classes` is true. Kept classes keep their values, so a label
+value means the same thing in every scene with the same prompt list.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from srfpipe.config import add_options_arguments, stage_options
+
+log = logging.getLogger(__name__)
+
+# RGBA for the NGFF image-label table; classes not listed get a tab10 colour.
+DEFAULT_COLORS = {
+    "background": [0, 0, 0, 0],
+    "apple": [214, 39, 40, 255],
+    "branch": [140, 86, 75, 255],
+    "leaf": [44, 160, 44, 255],
+}
+_PALETTE = [[31, 119, 180], [255, 127, 14], [148, 103, 189], [227, 119, 194], [127, 127, 127],
+            [188, 189, 34], [23, 190, 207], [214, 39, 40], [44, 160, 44], [140, 86, 75]]
+
+
+def class_members(probabilities: np.ndarray, thresholds) -> np.ndarray:
+    """Multi-hot bits (C, ...) bool: p_c >= t_c, from probabilities (C, ...) in [0, 1]."""
+    t = np.asarray(thresholds, dtype=np.float32).reshape((-1,) + (1,) * (probabilities.ndim - 1))
+    return probabilities >= t
+
+
+def label_image(probabilities: np.ndarray, thresholds, values) -> np.ndarray:
+    """Label image (...) uint8: values[c*] where c* = argmax of p_c over the classes above threshold.
+
+    `probabilities` is (C, ...); a pixel above no threshold gets 0 (background). np.argmax returns
+    the first maximum, so the earlier class wins a tie.
+    """
+    members = class_members(probabilities, thresholds)
+    scores = np.where(members, probabilities, -1.0)
+    winner = np.argmax(scores, axis=0)
+    lut = np.asarray(values, dtype=np.uint8)
+    return np.where(members.any(axis=0), lut[winner], 0).astype(np.uint8)
+
+
+def _color(name: str, index: int, colors: dict) -> list[int]:
+    if name in colors:
+        return list(colors[name])
+    if name in DEFAULT_COLORS:
+        return DEFAULT_COLORS[name]
+    return _PALETTE[index % len(_PALETTE)] + [255]
+
+
+def image_label_table(classes: list[str], values: list[int], counts: dict[str, int], colors: dict,
+                      source: str | None = None) -> dict:
+    """NGFF `image-label` metadata: colours and properties per label value (0 = background)."""
+    names = ["background", *classes]
+    all_values = [0, *values]
+    table = {
+        "version": "0.5",
+        "colors": [{"label-value": v, "rgba": _color(n, i, colors)} for i, (n, v) in enumerate(zip(names, all_values))],
+        "properties": [{"label-value": v, "class": n, "pixel_count": int(counts.get(n, 0))}
+                       for n, v in zip(names, all_values)],
+    }
+    if source:
+        table["source"] = {"image": source}
+    return table
+
+
+def _open_masks(paths: list[str | Path]):
+    from srfpipe.artifacts import meta, open_artifact
+
+    if not paths:
+        raise ValueError("composite: no masks given (segmentation.prompts is empty?)")
+    groups, prompts, thresholds = [], [], []
+    reference = None
+    for path in paths:
+        group = open_artifact(path, stage="segment")
+        info = meta(group)
+        shape = group["probability"].shape
+        names = info.get("names")
+        if reference is None:
+            reference = (path, shape, names)
+        elif shape != reference[1] or names != reference[2]:
+            raise ValueError(f"{path}: masks of shape {shape} for images {names[:3] if names else names}... "
+                             f"do not match {reference[0]} ({reference[1]})")
+        if info["prompt"] in prompts:
+            raise ValueError(f"{path}: prompt {info['prompt']!r} is given twice")
+        groups.append(group["probability"])
+        prompts.append(info["prompt"])
+        thresholds.append(float(info["threshold"]))
+    return groups, prompts, thresholds, reference
+
+
+def composite_masks(mask_paths: list[str | Path], options: dict, out: str | Path, progress: bool = True) -> Path:
+    """Read masks/{prompt}.zarr in class order and write labels.zarr."""
+    from tqdm import tqdm
+
+    from srfpipe.artifacts import create_artifact, update_attrs
+
+    arrays, prompts, thresholds, (_, shape, names) = _open_masks(mask_paths)
+    n, height, width = shape
+    all_values = list(range(1, len(prompts) + 1))
+    t = np.asarray(thresholds, dtype=np.float32)
+
+    # Pass 1: which classes does the scene contain at all?
+    counts = np.zeros(len(prompts), dtype=np.int64)
+    for i in tqdm(range(n), desc="count classes", unit="img", disable=not progress):
+        probs = np.stack([np.asarray(a[i]) for a in arrays]).astype(np.float32) / 255.0
+        counts += class_members(probs, t).reshape(len(prompts), -1).sum(axis=1)
+    min_pixels = int(options.get("min_pixels", 0))
+    empty = [p for p, c in zip(prompts, counts) if c <= min_pixels]
+    keep_empty = bool(options.get("keep_empty_classes", False))
+    kept = [k for k, p in enumerate(prompts) if keep_empty or p not in empty]
+    if empty:
+        action = "kept (labels.keep_empty_classes)" if keep_empty else "dropped from the heads"
+        log.warning("classes %s: at most %d pixels in all %d frames, %s", empty, min_pixels, n, action)
+    if not kept:
+        raise ValueError(f"composite: no frame contains any of the classes {prompts}; nothing to learn "
+                         "(set labels.keep_empty_classes: true to keep them anyway)")
+    classes = [prompts[k] for k in kept]
+    values = [all_values[k] for k in kept]
+
+    config = {**options, "prompts": prompts, "thresholds": dict(zip(prompts, thresholds))}
+    with create_artifact(out, stage="composite", config=config, inputs=list(mask_paths)) as group:
+        label = group.create_array("label", shape=(n, height, width), chunks=(1, height, width), dtype="uint8",
+                                   dimension_names=("image", "y", "x"), fill_value=0)
+        multihot = group.create_array("multihot", shape=(n, height, width, len(kept)),
+                                      chunks=(1, height, width, len(kept)), dtype="uint8",
+                                      dimension_names=("image", "y", "x", "class"), fill_value=0)
+        label_counts = np.zeros(len(kept) + 1, dtype=np.int64)
+        member_counts = np.zeros(len(kept), dtype=np.int64)
+        for i in tqdm(range(n), desc="composite", unit="img", disable=not progress):
+            probs = np.stack([np.asarray(arrays[k][i]) for k in kept]).astype(np.float32) / 255.0
+            frame = label_image(probs, t[kept], values)
+            bits = class_members(probs, t[kept])
+            label[i] = frame
+            multihot[i] = np.moveaxis(bits, 0, -1).astype(np.uint8)
+            label_counts += np.bincount(np.searchsorted([0, *values], frame.ravel()), minlength=len(kept) + 1)
+            member_counts += bits.reshape(len(kept), -1).sum(axis=1)
+        pixel_counts = {c: int(m) for c, m in zip(classes, member_counts)}
+        label_pixel_counts = {n_: int(c) for n_, c in zip(["background", *classes], label_counts)}
+        table = image_label_table(classes, values, label_pixel_counts, options.get("colors", {}))
+        label.attrs["image-label"] = table
+        update_attrs(group, classes=classes, class_values=dict(zip(classes, values)), names=names,
+                     pixel_counts=pixel_counts, label_pixel_counts=label_pixel_counts,
+                     dropped_classes=[] if keep_empty else empty, empty_classes=empty,
+                     thresholds=dict(zip(prompts, thresholds)), width=width, height=height,
+                     **{"image-label": table})
+    log.info("%s: classes %s, pixel counts %s, dropped %s", out, classes, pixel_counts,
+             [] if keep_empty else empty)
+    return Path(out)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--masks", nargs="+", required=True, metavar="ZARR",
+                        help="masks/{prompt}.zarr in class order (label values 1, 2, ... follow it)")
+    parser.add_argument("--out", required=True, metavar="ZARR", help="output labels.zarr")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_options_arguments(parser, "labels")
+
+
+def run(args) -> int:
+    composite_masks(args.masks, stage_options(args, "labels"), args.out, progress=not args.no_progress)
+    return 0

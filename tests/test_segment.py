@@ -1,0 +1,348 @@
+"""Segmentation back ends (onnx class-channel, onnx text-prompted, import) and label compositing."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from srfpipe.artifacts import create_artifact, meta, open_artifact
+from srfpipe.config import ConfigError, validate_scene
+from srfpipe.segment.composite import composite_masks, label_image
+from srfpipe.segment.run import prompt_options, segment_images
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+# ------------------------------------------------------------------------------------- helpers
+
+
+def options(**overrides) -> dict:
+    """A validated segmentation section with overrides, as one prompt's rule sees it."""
+    return validate_scene({"segmentation": overrides})["segmentation"]
+
+
+def write_images(path: Path, images: np.ndarray, downscale: float = 1, labels: np.ndarray | None = None) -> Path:
+    """A minimal images.zarr (stage downscale) holding `images` (N, H, W, 3) uint8."""
+    n, height, width, _ = images.shape
+    names = [f"frame_{i:05d}" for i in range(n)]
+    with create_artifact(path, stage="downscale") as group:
+        array = group.create_array("images", shape=images.shape, chunks=(1, height, width, 3), dtype="uint8")
+        array[:] = images
+        if labels is not None:
+            gt = group.create_group("ground_truth")
+            gt.create_array("labels", shape=labels.shape, dtype="uint8")[:] = labels
+        group.attrs["srfpipe"] = {**group.attrs["srfpipe"], "names": names, "width": width, "height": height,
+                                  "downscale": downscale}
+    return path
+
+
+def red_blue_images(n: int = 2, width: int = 40, height: int = 30) -> np.ndarray:
+    """Left half pure red, right half pure blue (the known answer for the colour models)."""
+    images = np.zeros((n, height, width, 3), np.uint8)
+    images[:, :, : width // 2, 0] = 255
+    images[:, :, width // 2:, 2] = 255
+    return images
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    union = np.logical_or(a, b).sum()
+    return float(np.logical_and(a, b).sum() / union) if union else 1.0
+
+
+def read_masks(path: Path) -> np.ndarray:
+    return np.asarray(open_artifact(path, stage="segment")["probability"][:]).astype(np.float32) / 255.0
+
+
+def export(model, args, path: Path, input_names, output_names, dynamic_axes=None, metadata=None) -> Path:
+    """Export a torch module to ONNX (legacy exporter: no onnxscript needed) with metadata_props."""
+    import onnx
+    import torch
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # the legacy exporter is all we have offline
+        torch.onnx.export(model, args, str(path), dynamo=False, input_names=input_names,
+                          output_names=output_names, dynamic_axes=dynamic_axes or {})
+    if metadata:
+        proto = onnx.load(str(path))
+        onnx.helper.set_model_props(proto, {k: json.dumps(v) if not isinstance(v, str) else v
+                                            for k, v in metadata.items()})
+        onnx.save(proto, str(path))
+    return path
+
+
+# -------------------------------------------------------------------- tiny models with answers
+
+
+@pytest.fixture(scope="module")
+def colour_text_model(tmp_path_factory):
+    """A text-prompted model: the mask is high where the colour named by the prompt is bright.
+
+    Inputs pixel_values (B, 3, 32, 32) normalized with mean = std = 0.5, input_ids and
+    attention_mask (B, 4); output logits (B, 32, 32).
+    """
+    import torch
+
+    class ColourPicker(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            table = torch.zeros(8, 3)
+            table[5, 0] = table[6, 1] = table[7, 2] = 1.0  # red, green, blue token ids
+            self.embed = torch.nn.Embedding.from_pretrained(table)
+
+        def forward(self, pixel_values, input_ids, attention_mask):
+            weights = (self.embed(input_ids) * attention_mask[..., None].float()).sum(1)  # (B, 3)
+            return 10.0 * (pixel_values * weights[:, :, None, None]).sum(1)  # x in [-1, 1]: 0 at 0.5
+
+    folder = tmp_path_factory.mktemp("text_model")
+    ids = torch.tensor([[1, 5, 2, 0]])
+    path = export(ColourPicker().eval(), (torch.zeros(1, 3, 32, 32), ids, torch.ones_like(ids)),
+                  folder / "colour_text.onnx", ["pixel_values", "input_ids", "attention_mask"], ["logits"],
+                  {"pixel_values": {0: "batch"}, "input_ids": {0: "batch"}, "attention_mask": {0: "batch"},
+                   "logits": {0: "batch"}})
+    tokenizer = folder / "vocab.json"
+    tokenizer.write_text(json.dumps({"vocab": {"red": 5, "green": 6, "blue": 7}, "bos": 1, "eos": 2,
+                                     "pad": 0, "length": 4}))
+    return path, tokenizer
+
+
+@pytest.fixture(scope="module")
+def colour_class_model(tmp_path_factory):
+    """A class-channel model with dynamic size: logits (B, 3, H, W) = 20 (rgb - 0.5)."""
+    import torch
+
+    class Channels(torch.nn.Module):
+        def forward(self, image):
+            return 20.0 * (image - 0.5)
+
+    path = tmp_path_factory.mktemp("class_model") / "colour_classes.onnx"
+    return export(Channels(), (torch.zeros(1, 3, 16, 16),), path, ["image"], ["logits"],
+                  {"image": {0: "b", 2: "h", 3: "w"}, "logits": {0: "b", 2: "h", 3: "w"}},
+                  metadata={"classes": ["red", "green", "blue"], "activation": "sigmoid"})
+
+
+# ------------------------------------------------------------------------- onnx: text-prompted
+
+
+@pytest.mark.parametrize("fit", ["resize", "tile"])
+def test_text_prompted_model_answers_each_prompt(tmp_path, colour_text_model, fit):
+    model, tokenizer = colour_text_model
+    images = write_images(tmp_path / "images.zarr", red_blue_images(n=3, width=80, height=60))
+    opts = options(model=str(model), tokenizer=str(tokenizer), mean=[0.5] * 3, std=[0.5] * 3, fit=fit,
+                   batch_size=2)
+    left = np.zeros((60, 80), bool)
+    left[:, :40] = True
+    for prompt, expected in [("red", left), ("blue", ~left), ("green", np.zeros_like(left))]:
+        out = segment_images(images, prompt, prompt_options(opts, prompt), tmp_path / f"{prompt}.zarr",
+                             progress=False)
+        masks = read_masks(out)
+        assert masks.shape == (3, 60, 80)
+        for mask in masks:
+            assert iou(mask >= 0.5, expected) >= 0.95, (prompt, fit)
+        info = meta(open_artifact(out))
+        assert info["prompt"] == prompt and info["model"]["kind"] == "text"
+        assert info["model"]["sha256"] and info["threshold"] == 0.5
+
+
+def test_text_prompt_words_come_from_prompt_text(tmp_path, colour_text_model):
+    model, tokenizer = colour_text_model
+    images = write_images(tmp_path / "images.zarr", red_blue_images(n=1))
+    opts = options(model=str(model), tokenizer=str(tokenizer), mean=[0.5] * 3, std=[0.5] * 3,
+                   prompt_text={"fruit": "red"})
+    masks = read_masks(segment_images(images, "fruit", prompt_options(opts, "fruit"), tmp_path / "f.zarr",
+                                      progress=False))
+    assert masks[0][:, :20].mean() > 0.95 and masks[0][:, 20:].mean() < 0.05
+    with pytest.raises(ValueError, match=r"vocab.json: the word 'purple'.*not in the vocabulary"):
+        segment_images(images, "purple", prompt_options(opts, "purple"), tmp_path / "p.zarr", progress=False)
+    assert not (tmp_path / "p.zarr").exists()
+
+
+# ---------------------------------------------------------------------- onnx: class-channel
+
+
+def test_class_channel_model_selects_the_prompt_channel(tmp_path, colour_class_model):
+    images = write_images(tmp_path / "images.zarr", red_blue_images(n=2, width=36, height=20))
+    opts = options(model=str(colour_class_model), pad_multiple=8)
+    red = read_masks(segment_images(images, "red", prompt_options(opts, "red"), tmp_path / "r.zarr", progress=False))
+    blue = read_masks(segment_images(images, "blue", prompt_options(opts, "blue"), tmp_path / "b.zarr", progress=False))
+    assert red.shape == (2, 20, 36)
+    assert red[:, :, :18].min() > 0.99 and red[:, :, 18:].max() < 0.01
+    assert np.array_equal(blue >= 0.5, red < 0.5)
+
+
+def test_unknown_prompt_names_the_model_and_its_classes(tmp_path, colour_class_model):
+    images = write_images(tmp_path / "images.zarr", red_blue_images(n=1))
+    opts = options(model=str(colour_class_model))
+    with pytest.raises(ValueError, match=r"unknown prompt 'apple'.*colour_classes.onnx.*'red', 'green', 'blue'"):
+        segment_images(images, "apple", prompt_options(opts, "apple"), tmp_path / "a.zarr", progress=False)
+    # config class names override the metadata
+    opts = options(model=str(colour_class_model), classes=["apple", "grass", "sky"])
+    masks = read_masks(segment_images(images, "apple", prompt_options(opts, "apple"), tmp_path / "a.zarr",
+                                      progress=False))
+    assert masks[0][:, :20].min() > 0.99
+
+
+def test_model_with_wrong_inputs_lists_what_was_expected(tmp_path):
+    import torch
+
+    class FiveChannels(torch.nn.Module):
+        def forward(self, x):
+            return x[:, :1]
+
+    path = export(FiveChannels(), (torch.zeros(1, 5, 8, 8),), tmp_path / "five.onnx", ["spectral"], ["out"])
+    images = write_images(tmp_path / "images.zarr", red_blue_images(n=1))
+    opts = options(model=str(path), classes=["apple"])
+    with pytest.raises(ValueError, match=r"five.onnx: image input 'spectral' float \(1, 5, 8, 8\) has no channel "
+                                         r"axis of size 3.*expected to have an image input float \(batch, 3, height, width\)"):
+        segment_images(images, "apple", prompt_options(opts, "apple"), tmp_path / "a.zarr", progress=False)
+    with pytest.raises(FileNotFoundError, match=r"missing.onnx: ONNX model file does not exist"):
+        segment_images(images, "apple", prompt_options(options(model=str(tmp_path / "missing.onnx")), "apple"),
+                       tmp_path / "a.zarr", progress=False)
+
+
+def test_text_model_without_token_input_is_rejected(tmp_path, colour_class_model):
+    images = write_images(tmp_path / "images.zarr", red_blue_images(n=1))
+    opts = options(model=str(colour_class_model), kind="text", tokenizer="unused.json")
+    with pytest.raises(ValueError, match=r"no integer token-id input.*token ids int \(batch, length\).*"
+                                         r"this model has inputs 'image' float \(b, 3, h, w\)"):
+        segment_images(images, "red", prompt_options(opts, "red"), tmp_path / "r.zarr", progress=False)
+
+
+# --------------------------------------------------------------------------------- import
+
+
+def test_import_png_masks_binary_soft_and_full_resolution(tmp_path):
+    images = write_images(tmp_path / "images.zarr", red_blue_images(n=2, width=40, height=30), downscale=2)
+    folder = tmp_path / "sam3"
+    folder.mkdir()
+    truth = np.zeros((2, 30, 40), np.float32)
+    truth[0, 5:15, 10:30] = 1.0
+    truth[1, 10:25, 0:20] = 0.6
+    cv2.imwrite(str(folder / "frame_00000_apple.png"), truth[0].astype(np.uint8))  # binary 0/1
+    full = cv2.resize((truth[1] * 255).astype(np.uint8), (80, 60), interpolation=cv2.INTER_NEAREST)
+    cv2.imwrite(str(folder / "frame_00001_apple.png"), full)  # soft, full resolution
+    opts = options(backend="import", **{"import": {"path": str(folder)}})
+    masks = read_masks(segment_images(images, "apple", prompt_options(opts, "apple"), tmp_path / "a.zarr",
+                                      progress=False))
+    assert np.array_equal(masks[0], truth[0])
+    assert np.abs(masks[1] - truth[1]).max() <= 1 / 255 + 1e-6
+    assert meta(open_artifact(tmp_path / "a.zarr"))["backend"] == "import"
+
+
+def test_import_label_images_with_value_table(tmp_path):
+    labels = np.zeros((2, 30, 40), np.uint8)
+    labels[:, 2:8, 2:8] = 1
+    labels[:, 10:20, :] = 7
+    labels[1, 25:, 30:] = 9
+    images = write_images(tmp_path / "images.zarr", red_blue_images(n=2, width=40, height=30))
+    folder = tmp_path / "labels"
+    folder.mkdir()
+    for i, label in enumerate(labels):
+        cv2.imwrite(str(folder / f"frame_{i:05d}.png"), label)
+    spec = {"path": str(folder), "format": "labels", "pattern": "{frame}.png",
+            "values": {"apple": 1, "leaf": [7, 9]}}
+    with pytest.raises(ValueError, match=r"pattern '\{frame\}.png': unknown field 'frame'"):
+        segment_images(images, "apple", prompt_options(options(backend="import", **{"import": spec}), "apple"),
+                       tmp_path / "x.zarr", progress=False)
+    spec["pattern"] = "{name}.png"
+    opts = options(backend="import", **{"import": spec})
+    for prompt, values in [("apple", [1]), ("leaf", [7, 9])]:
+        masks = read_masks(segment_images(images, prompt, prompt_options(opts, prompt), tmp_path / f"{prompt}.zarr",
+                                          progress=False))
+        assert np.array_equal(masks == 1.0, np.isin(labels, values))
+    with pytest.raises(ValueError, match=r"unknown prompt 'branch': segmentation.import.values has no label value"):
+        segment_images(images, "branch", prompt_options(opts, "branch"), tmp_path / "b.zarr", progress=False)
+
+
+def test_import_missing_or_wrongly_sized_mask_names_the_file(tmp_path):
+    images = write_images(tmp_path / "images.zarr", red_blue_images(n=2, width=40, height=30), downscale=4)
+    folder = tmp_path / "masks"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "frame_00000_apple.png"), np.zeros((30, 40), np.uint8))
+    opts = options(backend="import", **{"import": {"path": str(folder)}})
+    with pytest.raises(FileNotFoundError, match=r"frame_00001_apple.png: mask file does not exist"):
+        segment_images(images, "apple", prompt_options(opts, "apple"), tmp_path / "a.zarr", progress=False)
+    assert not (tmp_path / "a.zarr").exists()  # nothing that looks complete
+    cv2.imwrite(str(folder / "frame_00001_apple.png"), np.zeros((31, 40), np.uint8))
+    with pytest.raises(ValueError, match=r"frame_00001_apple.png: mask is 40x31, expected 40x30 "
+                                         r"\(the size of images.zarr\) or 160x120 \(full resolution\)"):
+        segment_images(images, "apple", prompt_options(opts, "apple"), tmp_path / "a.zarr", progress=False)
+
+
+# ------------------------------------------------------------------------------ composite
+
+
+def write_mask(path: Path, prompt: str, probability: np.ndarray, threshold: float = 0.5) -> Path:
+    n, height, width = probability.shape
+    with create_artifact(path, stage="segment") as group:
+        group.create_array("probability", shape=probability.shape, chunks=(1, height, width),
+                           dtype="uint8")[:] = np.round(probability * 255).astype(np.uint8)
+        group.attrs["srfpipe"] = {**group.attrs["srfpipe"], "prompt": prompt, "threshold": threshold,
+                                  "names": [f"frame_{i:05d}" for i in range(n)]}
+    return path
+
+
+def test_label_image_takes_the_most_probable_class_above_threshold():
+    probs = np.array([[0.9, 0.6, 0.2, 0.55], [0.7, 0.8, 0.1, 0.45], [0.0, 0.0, 0.3, 0.1]], np.float32)
+    labels = label_image(probs, [0.5, 0.5, 0.25], [1, 2, 3])
+    # pixel 3: class 2 has the higher probability but is below its threshold
+    assert labels.tolist() == [1, 2, 3, 1]
+
+
+def test_composite_writes_labels_multihot_counts_and_drops_empty_classes(tmp_path):
+    apple = np.zeros((2, 4, 5), np.float32)
+    leaf = np.zeros_like(apple)
+    branch = np.zeros_like(apple)  # the scene has no branch
+    apple[0, 0, :3] = 0.9
+    leaf[0, 0, 2:] = 0.7  # overlaps apple at (0, 0, 2): apple wins the label, both bits set
+    leaf[1] = 0.6
+    masks = [write_mask(tmp_path / "apple.zarr", "apple", apple), write_mask(tmp_path / "branch.zarr", "branch", branch),
+             write_mask(tmp_path / "leaf.zarr", "leaf", leaf, threshold=0.65)]
+    out = composite_masks(masks, validate_scene({})["labels"], tmp_path / "labels.zarr", progress=False)
+    group = open_artifact(out, stage="composite")
+    info = meta(group)
+    label = np.asarray(group["label"][:])
+    multihot = np.asarray(group["multihot"][:])
+    assert info["classes"] == ["apple", "leaf"] and info["dropped_classes"] == ["branch"]
+    assert info["class_values"] == {"apple": 1, "leaf": 3}  # values keep the prompt order
+    assert label[0, 0].tolist() == [1, 1, 1, 3, 3] and (label[1] == 0).all()  # 0.6 < leaf's 0.65
+    assert multihot.shape == (2, 4, 5, 2)
+    assert multihot[0, 0, 2].tolist() == [1, 1]
+    assert info["pixel_counts"] == {"apple": 3, "leaf": 3}
+    assert info["label_pixel_counts"] == {"background": 35, "apple": 3, "leaf": 2}
+    table = info["image-label"]
+    assert [c["label-value"] for c in table["colors"]] == [0, 1, 3]
+    assert {p["class"]: p["pixel_count"] for p in table["properties"]} == {"background": 35, "apple": 3, "leaf": 2}
+
+    kept = composite_masks(masks, validate_scene({"labels": {"keep_empty_classes": True}})["labels"],
+                           tmp_path / "all.zarr", progress=False)
+    group = open_artifact(kept)
+    assert meta(group)["classes"] == ["apple", "branch", "leaf"] and meta(group)["dropped_classes"] == []
+    assert group["multihot"].shape == (2, 4, 5, 3)
+
+
+def test_empty_prompt_list_is_an_error(tmp_path):
+    with pytest.raises(ConfigError, match=r"segmentation.prompts: \[\] should be non-empty"):
+        validate_scene({"segmentation": {"prompts": []}}, "config/scenes/x.yaml")
+    with pytest.raises(ValueError, match="no masks given"):
+        composite_masks([], {}, tmp_path / "labels.zarr", progress=False)
+    result = subprocess.run([sys.executable, "-m", "srfpipe.cli", "composite", "--out", str(tmp_path / "l.zarr"),
+                             "--masks"], capture_output=True, text=True)
+    assert result.returncode != 0 and "--masks" in result.stderr
+
+
+def test_prompt_options_hold_only_that_prompts_keys():
+    section = options(prompts=["apple", "branch"], thresholds={"branch": 0.3}, prompt_text={"apple": "red apple"})
+    apple, branch = prompt_options(section, "apple"), prompt_options(section, "branch")
+    assert apple["threshold"] == 0.5 and branch["threshold"] == 0.3
+    assert apple["prompt_text"] == {"apple": "red apple"} and branch["prompt_text"] == {}
+    assert "prompts" not in apple and "import" not in apple
+    grown = options(prompts=["apple", "branch", "trunk"], thresholds={"branch": 0.3, "trunk": 0.7},
+                    prompt_text={"apple": "red apple", "trunk": "tree trunk"})
+    assert prompt_options(grown, "apple") == apple and prompt_options(grown, "branch") == branch
