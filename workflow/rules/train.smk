@@ -1,1 +1,55 @@
-# Rules of the train stage(s): see srfpipe/ for the code; rules stay thin.
+# Train the semantic radiance field (srf.zarr) and evaluate it on held-out views (eval/).
+# Checkpoints live beside the output ({scene}/srf.ckpt/), so a killed training job resumes
+# when the rule runs again; the trainer removes them after success.
+
+
+def holdout_every(wildcards):
+    return SCENES[wildcards.scene]["evaluate"]["holdout_every"]
+
+
+rule train:
+    input:
+        images=rules.downscale.output[0],
+        labels=rules.composite.output[0],
+    output:
+        directory(f"{RESULTS}/{{scene}}/srf.zarr"),
+    params:
+        options=scene_section("train"),
+        holdout=holdout_every,
+        checkpoints=lambda wildcards: f"{RESULTS}/{wildcards.scene}/srf.ckpt",
+    log:
+        stdout="logs/{scene}/train.log",
+        metrics="logs/{scene}/train_metrics.jsonl",
+    benchmark:
+        "benchmarks/runs/{scene}/train.tsv"
+    threads: 2
+    resources:
+        mem_mb=8000,
+        runtime=120,
+        gpu=0,
+    shell:
+        "srfpipe train --images {input.images} --labels {input.labels} --out {output} "
+        "--checkpoints {params.checkpoints} --holdout-every {params.holdout} --threads {threads} "
+        "--metrics-log {log.metrics} --options {params.options:q} > {log.stdout} 2>&1"
+
+
+rule evaluate:
+    input:
+        images=rules.downscale.output[0],
+        labels=rules.composite.output[0],
+        srf=rules.train.output[0],
+    output:
+        directory(f"{RESULTS}/{{scene}}/eval"),
+    params:
+        options=scene_section("evaluate"),
+    log:
+        "logs/{scene}/evaluate.log",
+    benchmark:
+        "benchmarks/runs/{scene}/evaluate.tsv"
+    threads: 2
+    resources:
+        mem_mb=4000,
+        runtime=30,
+    shell:
+        "srfpipe evaluate --images {input.images} --labels {input.labels} --srf {input.srf} "
+        "--threads {threads} --options {params.options:q} --out {output} > {log} 2>&1"

@@ -1,0 +1,219 @@
+"""Evaluate a trained SRF on its held-out views: PSNR, SSIM, per-class IoU and mIoU -> eval/.
+
+The held-out views are the ones the trainer excluded (recorded in srf.zarr; `split_views`).
+Writes `metrics.json` and one PNG per view (top: render | semantic blend | depth; bottom: the
+captured image | its labels | ground-truth depth when known), like the paper's figure 1.
+IoU is computed on label images: a pixel takes the most probable class whose probability
+is >= 0.5, background otherwise; `miou` averages over the trained classes and background.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger("srfpipe.evaluate")
+
+# RGB colours for the default class table (apple, branch, leaf) and a fallback palette.
+DEFAULT_COLOURS = {"apple": (220, 30, 30), "branch": (140, 90, 40), "leaf": (40, 200, 60)}
+PALETTE = [(230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200), (245, 130, 48), (145, 30, 180)]
+
+
+def add_arguments(parser) -> None:
+    from srfpipe.config import add_options_arguments
+
+    parser.add_argument("--images", required=True, metavar="ZARR", help="images.zarr (stage downscale)")
+    parser.add_argument("--labels", required=True, metavar="ZARR", help="labels.zarr (stage composite)")
+    parser.add_argument("--srf", required=True, metavar="ZARR", help="srf.zarr (stage train)")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output folder (metrics.json, renders/)")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    parser.add_argument("--device", default="auto", help="auto | cpu | cuda")
+    add_options_arguments(parser, "evaluate")
+
+
+def run(args) -> int:
+    from srfpipe.config import stage_options
+
+    options = stage_options(args, "evaluate")
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    metrics = evaluate(args.images, args.labels, args.srf, args.out, options, device=args.device)
+    summary = {k: metrics[k] for k in ("psnr", "psnr_object", "ssim", "miou", "miou_gt") if k in metrics}
+    print(json.dumps(summary))
+    return 0
+
+
+def class_colours(classes: list[str], label_attrs: dict | None = None) -> np.ndarray:
+    """(C + 1, 3) uint8 colours: background black, then one per class (NGFF table when given)."""
+    colours = np.zeros((len(classes) + 1, 3), dtype=np.uint8)
+    table = {}
+    for entry in ((label_attrs or {}).get("image-label") or {}).get("colors", []) or []:
+        if isinstance(entry, dict) and "label-value" in entry and "rgba" in entry:
+            table[int(entry["label-value"])] = entry["rgba"][:3]
+    for i, name in enumerate(classes):
+        colours[i + 1] = table.get(i + 1, DEFAULT_COLOURS.get(name, PALETTE[i % len(PALETTE)]))
+    return colours
+
+
+def semantic_blend(rgb: np.ndarray, label: np.ndarray, colours: np.ndarray, alpha: float = 0.6) -> np.ndarray:
+    """rgb (H, W, 3) float in [0, 1] blended with class colours where label > 0 -> uint8."""
+    base = (np.clip(rgb, 0, 1) * 255).astype(np.float32)
+    tint = colours[label].astype(np.float32)
+    out = np.where((label > 0)[..., None], (1 - alpha) * base + alpha * tint, base * 0.5)
+    return out.astype(np.uint8)
+
+
+def depth_image(depth: np.ndarray, near: float, far: float) -> np.ndarray:
+    """Colour-mapped depth (turbo), black where there is no depth."""
+    import cv2
+
+    valid = np.isfinite(depth) & (depth > 0)
+    norm = np.clip((depth - near) / max(far - near, 1e-9), 0, 1)
+    coloured = cv2.applyColorMap((255 * (1 - norm)).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1]
+    return np.where(valid[..., None], coloured, 0).astype(np.uint8)
+
+
+def _atomic_folder(out: Path):
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.partial-{uuid.uuid4().hex[:8]}")
+    tmp.mkdir()
+    return tmp
+
+
+def evaluate(images, labels, srf, out, options: dict, device="auto") -> dict:
+    """Compute the metrics and renders; write them to `out` atomically; return the metrics."""
+    import cv2
+
+    from srfpipe.artifacts import meta, open_artifact
+    from srfpipe.srf import metrics
+    from srfpipe.srf.data import load_posed_images, split_views
+    from srfpipe.srf.query import SemanticRadianceField
+    from srfpipe.srf.trainer import remap_ground_truth
+
+    out = Path(out)
+    field = SemanticRadianceField.load(srf, device)
+    data = load_posed_images(images, labels)
+    if data.label is None:
+        raise ValueError(f"{labels}: missing array 'label' (the composited label image)")
+    if data.classes != field.classes:
+        raise ValueError(f"{labels}: classes {data.classes} differ from the SRF's {field.classes} ({srf})")
+    holdout = int(options.get("holdout_every", field.attrs.get("holdout_every", 8)))
+    if holdout != int(field.attrs.get("holdout_every", holdout)):
+        raise ValueError(
+            f"{srf}: trained with holdout_every={field.attrs.get('holdout_every')}, evaluate asks for {holdout}"
+        )
+    _, heldout = split_views(data.count, holdout)
+    colours = class_colours(data.classes, meta(open_artifact(labels, stage="composite")))
+    c = len(data.classes)
+    world_from_scene = field.world_from_scene
+    conf = np.zeros((c + 1, c + 1), np.int64)
+    conf_gt = np.zeros((c + 1, c + 1), np.int64) if data.gt_label is not None else None
+    per_view, sq_err, sq_err_obj, obj_pixels = [], 0.0, 0.0, 0
+    # bottom row of each figure: the captured image | reference labels | render opacity
+    tmp = _atomic_folder(out)
+    try:
+        (tmp / "renders").mkdir()
+        for index in heldout:
+            pose_world = world_from_scene_pose(world_from_scene, data.poses_scene[index].numpy())
+            result = field.render(pose_world, data.intrinsics[index].numpy(), data.width, data.height)
+            target = data.images[index].numpy().astype(np.float64) / 255.0
+            pred_label = metrics.label_from_probabilities(result["semantic"])
+            label = data.label[index]
+            objects = label > 0
+            gt = None
+            if data.gt_label is not None:
+                gt = remap_ground_truth(data.gt_label[index], data.gt_classes, data.classes)
+                objects = gt > 0
+                conf_gt += metrics.confusion(pred_label, gt, c + 1)
+            conf += metrics.confusion(pred_label, label, c + 1)
+            err = (result["rgb"].astype(np.float64) - target) ** 2
+            sq_err += float(err.sum())
+            sq_err_obj += float(err[objects].sum())
+            obj_pixels += int(objects.sum())
+            view = {
+                "name": data.names[index], "index": int(index),
+                "psnr": metrics.psnr(result["rgb"], target),
+                "psnr_object": metrics.psnr(result["rgb"], target, objects),
+                "ssim": metrics.ssim(result["rgb"], target),
+            }
+            per_view.append(view)
+            _write_figure(tmp / "renders" / f"{data.names[index]}.png", result, target, pred_label,
+                          gt if gt is not None else label, colours, data, index, field.scale, cv2)
+        n_values = len(heldout) * data.height * data.width * 3
+        iou = metrics.iou_from_confusion(conf)
+        names = ["background"] + data.classes
+        result = {
+            "views": len(heldout), "holdout_every": holdout,
+            "psnr": -10 * np.log10(max(sq_err / n_values, 1e-12)),
+            "psnr_object": (-10 * np.log10(max(sq_err_obj / max(obj_pixels * 3, 1), 1e-12))) if obj_pixels else None,
+            "ssim": float(np.mean([v["ssim"] for v in per_view])),
+            "iou": {name: _finite(v) for name, v in zip(names, iou)},
+            "miou": float(np.nanmean(iou)),
+            "miou_classes": float(np.nanmean(iou[1:])),
+            "label_source": str(labels),
+            "srf": str(srf), "train_seconds": field.attrs.get("train_seconds"),
+            "per_view": per_view,
+        }
+        if conf_gt is not None:
+            iou_gt = metrics.iou_from_confusion(conf_gt)
+            result["iou_gt"] = {name: _finite(v) for name, v in zip(names, iou_gt)}
+            result["miou_gt"] = float(np.nanmean(iou_gt))
+            result["miou_gt_classes"] = float(np.nanmean(iou_gt[1:]))
+        (tmp / "metrics.json").write_text(json.dumps(_clean(result), indent=2))
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    log.info("psnr %.2f ssim %.3f miou %.3f", result["psnr"], result["ssim"], result["miou"])
+    return result
+
+
+def world_from_scene_pose(world_from_scene: np.ndarray, pose_scene: np.ndarray) -> np.ndarray:
+    from srfpipe.cameras import transform_poses
+
+    return transform_poses(world_from_scene, pose_scene.astype(np.float64))
+
+
+def _finite(value):
+    return None if not np.isfinite(value) else float(value)
+
+
+def _clean(value):
+    if isinstance(value, dict):
+        return {k: _clean(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_clean(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if np.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
+def _write_figure(path, result, target, pred_label, label, colours, data, index, scale, cv2) -> None:
+    depth = result["depth"]
+    valid = result["accumulation"] > 0.5
+    finite = depth[valid] if valid.any() else np.array([0.0, 1.0])
+    near, far = float(np.percentile(finite, 2)), float(np.percentile(finite, 98))
+    top = np.concatenate([
+        (np.clip(result["rgb"], 0, 1) * 255).astype(np.uint8),
+        semantic_blend(result["rgb"], pred_label, colours),
+        depth_image(np.where(valid, depth, 0), near, far),
+    ], axis=1)
+    opacity = np.repeat((np.clip(result["accumulation"], 0, 1) * 255).astype(np.uint8)[..., None], 3, axis=-1)
+    bottom = np.concatenate([
+        (target * 255).astype(np.uint8), semantic_blend(target, label, colours), opacity,
+    ], axis=1)
+    figure = np.concatenate([top, bottom], axis=0)
+    if not cv2.imwrite(str(path), figure[..., ::-1]):
+        raise RuntimeError(f"{path}: could not write PNG")

@@ -1,0 +1,139 @@
+"""Posed images and labels for training and evaluation, read from images.zarr and labels.zarr.
+
+Poses are moved into the scene frame once here (`transform_poses(scene_from_world, ...)`), so the
+model only ever sees scene-frame rays; depth and density are converted back with the scene scale.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from srfpipe.artifacts import meta, open_artifact
+from srfpipe.cameras import transform_poses
+
+
+@dataclass
+class PosedImages:
+    images: torch.Tensor  # (N, H, W, 3) uint8
+    multihot: torch.Tensor | None  # (N, H, W, C) uint8, or None without labels
+    label: np.ndarray | None  # (N, H, W) uint8 composited label image
+    gt_label: np.ndarray | None  # (N, H, W) uint8 ground-truth classes (orchard only)
+    gt_classes: list[str] | None
+    poses_scene: torch.Tensor  # (N, 4, 4) float32 camera_to_scene
+    intrinsics: torch.Tensor  # (N, 4) float32
+    width: int
+    height: int
+    names: list[str]
+    classes: list[str]
+    scene_from_world: np.ndarray
+    world_from_scene: np.ndarray
+    bounds_world: np.ndarray
+    provenance: dict
+
+    @property
+    def count(self) -> int:
+        return int(self.images.shape[0])
+
+
+def split_views(count: int, holdout_every: int) -> tuple[np.ndarray, np.ndarray]:
+    """(train, held-out) view indices: every `holdout_every`-th view, starting with view 0, is held out.
+
+    The trainer and the evaluation use this one function, so the split can never disagree.
+    """
+    if holdout_every < 2:
+        raise ValueError(f"holdout_every must be >= 2, got {holdout_every}")
+    index = np.arange(count)
+    held_out = index % holdout_every == 0
+    if held_out.all() or count < 2:
+        raise ValueError(f"{count} views leave nothing to train on with holdout_every={holdout_every}")
+    return index[~held_out], index[held_out]
+
+
+def _check_matrix(value, name: str, path: Path) -> np.ndarray:
+    matrix = np.asarray(value, dtype=np.float64)
+    if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
+        raise ValueError(f"{path}: attribute {name} must be a finite 4x4 matrix")
+    return matrix
+
+
+def load_posed_images(images_path, labels_path=None) -> PosedImages:
+    """Read images.zarr (+ labels.zarr) into memory, checking shapes against each other."""
+    images_path = Path(images_path)
+    group = open_artifact(images_path, stage="downscale")
+    attrs = meta(group)
+    for key in ("images", "intrinsics", "camera_to_world"):
+        if key not in group:
+            raise ValueError(f"{images_path}: missing array '{key}'")
+    images = np.asarray(group["images"][...])
+    if images.ndim != 4 or images.shape[-1] != 3 or images.dtype != np.uint8:
+        raise ValueError(f"{images_path}: images must be (N, H, W, 3) uint8, got {images.shape} {images.dtype}")
+    n, h, w, _ = images.shape
+    intrinsics = np.asarray(group["intrinsics"][...], dtype=np.float64)
+    poses = np.asarray(group["camera_to_world"][...], dtype=np.float64)
+    if intrinsics.shape != (n, 4) or poses.shape != (n, 4, 4):
+        raise ValueError(
+            f"{images_path}: {n} images but intrinsics {intrinsics.shape} and camera_to_world {poses.shape}"
+        )
+    if not (np.all(np.isfinite(intrinsics)) and np.all(np.isfinite(poses))):
+        raise ValueError(f"{images_path}: intrinsics or camera_to_world contain NaN/inf")
+    scene_from_world = _check_matrix(attrs.get("scene_from_world"), "scene_from_world", images_path)
+    world_from_scene = _check_matrix(attrs.get("world_from_scene", np.linalg.inv(scene_from_world)),
+                                     "world_from_scene", images_path)
+    bounds = np.asarray(attrs.get("bounds_world"), dtype=np.float64)
+    if bounds.shape != (2, 3):
+        raise ValueError(f"{images_path}: attribute bounds_world must be [[min xyz], [max xyz]]")
+    gt_label = gt_classes = None
+    if "ground_truth" in group and "labels" in group["ground_truth"]:
+        gt_label = np.asarray(group["ground_truth"]["labels"][...])
+        gt_classes = ["background", "apple", "branch", "leaf"]
+    multihot = label = None
+    classes: list[str] = []
+    if labels_path is not None:
+        labels_path = Path(labels_path)
+        lgroup = open_artifact(labels_path, stage="composite")
+        lattrs = meta(lgroup)
+        classes = [str(c) for c in lattrs.get("classes", [])]
+        if "multihot" not in lgroup:
+            raise ValueError(f"{labels_path}: missing array 'multihot'")
+        multihot = np.asarray(lgroup["multihot"][...]).astype(np.uint8)
+        if multihot.shape[:3] != (n, h, w) or multihot.shape[3] != len(classes):
+            raise ValueError(
+                f"{labels_path}: multihot {multihot.shape} does not match {n} images of {w}x{h} "
+                f"and {len(classes)} classes {classes}"
+            )
+        if "label" in lgroup:
+            label = np.asarray(lgroup["label"][...])
+    return PosedImages(
+        images=torch.from_numpy(images),
+        multihot=None if multihot is None else torch.from_numpy(multihot),
+        label=label, gt_label=gt_label, gt_classes=gt_classes,
+        poses_scene=torch.from_numpy(transform_poses(scene_from_world, poses)).float(),
+        intrinsics=torch.from_numpy(intrinsics).float(),
+        width=w, height=h, names=[str(x) for x in attrs.get("names", [str(i) for i in range(n)])],
+        classes=classes, scene_from_world=scene_from_world, world_from_scene=world_from_scene,
+        bounds_world=bounds, provenance=attrs,
+    )
+
+
+def rays_for_pixels(poses: torch.Tensor, intrinsics: torch.Tensor, u: torch.Tensor, v: torch.Tensor):
+    """Rays through pixel centres (u + 0.5, v + 0.5) of cameras (R, 4, 4) with intrinsics (R, 4).
+
+    OpenCV camera frame (see srfpipe.cameras). Returns origins and unit directions (R, 3).
+    """
+    fx, fy, cx, cy = intrinsics.unbind(-1)
+    d_cam = torch.stack([(u.float() + 0.5 - cx) / fx, (v.float() + 0.5 - cy) / fy, torch.ones_like(fx)], -1)
+    d = torch.einsum("rij,rj->ri", poses[:, :3, :3], d_cam)
+    d = d / torch.linalg.norm(d, dim=-1, keepdim=True)
+    return poses[:, :3, 3].clone(), d
+
+
+def image_rays(pose: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int):
+    """Rays (H*W, 3) through every pixel of one camera, row-major."""
+    v, u = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    u, v = u.reshape(-1), v.reshape(-1)
+    n = u.shape[0]
+    return rays_for_pixels(pose.expand(n, 4, 4), intrinsics.expand(n, 4), u, v)

@@ -1,0 +1,75 @@
+"""srf.zarr: the trained field as plain Zarr arrays (no pickle), and loading it back on CPU or CUDA.
+
+Layout (root attributes under the `srfpipe` namespace, see docs/artifacts.md):
+
+    weights/<state-dict key>   one float32/bool array per parameter or buffer (the occupancy grid too)
+    curve/<name>               training curve: step, seconds, loss, psnr, samples_per_ray
+    eval_curve/<name>          optional held-out curve: step, seconds, psnr, miou
+    attrs: model_config, classes, scene_from_world, world_from_scene, bounds_world, scene_scale,
+           holdout_every, train_views, heldout_views, train (options used), train_seconds, ...
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from srfpipe.artifacts import create_artifact, meta, open_artifact
+
+FORMAT = "srfpipe-srf-1"
+
+
+def write_srf(path, model, *, config: dict, inputs: list, curve: dict, eval_curve: dict | None = None,
+              **attrs) -> None:
+    """Write a trained `SRFModel` and its metadata atomically to `path`."""
+    state = model.state_dict()
+    with create_artifact(path, stage="train", config=config, inputs=inputs, format=FORMAT,
+                         model_config=model.config, **attrs) as group:
+        weights = group.create_group("weights")
+        for key, tensor in state.items():
+            array = tensor.detach().cpu()
+            array = array.numpy() if array.dtype == torch.bool else array.float().numpy()
+            chunks = array.shape if array.size < (1 << 22) else (max(1, (1 << 22) // max(1, int(np.prod(array.shape[1:])))),) + array.shape[1:]
+            weights.create_array(key, shape=array.shape, chunks=chunks or None, dtype=array.dtype)[...] = array
+        for name, series in (("curve", curve), ("eval_curve", eval_curve or {})):
+            sub = group.create_group(name)
+            for key, values in series.items():
+                values = np.asarray(values, dtype=np.float64)
+                sub.create_array(key, shape=values.shape, dtype=np.float64)[...] = values
+
+
+def read_srf(path, device="cpu"):
+    """(model, attrs) from srf.zarr on `device` (a torch.device or string), in eval mode."""
+    from srfpipe.srf.model import SRFModel
+
+    path = Path(path)
+    group = open_artifact(path, stage="train")
+    attrs = meta(group)
+    if attrs.get("format") != FORMAT:
+        raise ValueError(f"{path}: unknown SRF format {attrs.get('format')!r}, this srfpipe reads {FORMAT}")
+    config = attrs["model_config"]
+    for key in ("inner", "outer"):  # weights are in the torch layout
+        if config.get(key):
+            config[key] = dict(config[key], prefer_tcnn=False)
+    model = SRFModel(config, device)
+    state = model.state_dict()
+    weights = group["weights"]
+    loaded = {}
+    for key, tensor in state.items():
+        if key not in weights:
+            raise ValueError(f"{path}: weights/{key} is missing")
+        array = np.asarray(weights[key][...])
+        if tuple(array.shape) != tuple(tensor.shape):
+            raise ValueError(f"{path}: weights/{key} has shape {array.shape}, the model expects {tuple(tensor.shape)}")
+        loaded[key] = torch.from_numpy(array).to(tensor.dtype)
+    model.load_state_dict(loaded)
+    return model.to(device).eval(), attrs
+
+
+def read_curve(path, name: str = "curve") -> dict[str, np.ndarray]:
+    group = open_artifact(path, stage="train")
+    if name not in group:
+        return {}
+    return {key: np.asarray(array[...]) for key, array in group[name].arrays()}

@@ -1,0 +1,56 @@
+"""Training losses: Eq. 5 (photometric MSE) + lambda * Eq. 4 (per-class binary cross-entropy).
+
+The BCE is computed from the rendered logits with `binary_cross_entropy_with_logits` (a stable
+log-sigmoid), never as log(sigmoid(x)), so logits of +-1e4 give finite values and gradients.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def photometric_loss(rgb: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """L_photo = 1/|R| sum_r ||C(r) - C_hat(r)||^2 (Eq. 5), rgb and target (R, 3) in [0, 1]."""
+    if rgb.shape[0] == 0:
+        return rgb.sum() * 0.0
+    return ((rgb.float() - target.float()) ** 2).sum(dim=-1).mean()
+
+
+def semantic_loss(
+    logits: torch.Tensor, labels: torch.Tensor, valid: torch.Tensor | None = None
+) -> torch.Tensor:
+    """L_sem = 1/|R| sum_r sum_c BCE(sigmoid(S_hat_c(r)), y_c(r)) (Eq. 4).
+
+    logits (R, C) rendered per-class logits; labels (R, C) in {0, 1}; `valid` (R,) excludes rays
+    that carry no label information. Returns 0 (with a graph) when no ray is valid.
+    """
+    per_ray = F.binary_cross_entropy_with_logits(
+        logits.float(), labels.float(), reduction="none"
+    ).sum(dim=-1)
+    if valid is not None:
+        per_ray = per_ray[valid]
+    if per_ray.numel() == 0:
+        return logits.sum() * 0.0
+    return per_ray.mean()
+
+
+def total_loss(
+    rgb: torch.Tensor,
+    target_rgb: torch.Tensor,
+    logits: torch.Tensor,
+    labels: torch.Tensor,
+    lambda_sem: float = 1.0,
+    valid: torch.Tensor | None = None,
+) -> dict[str, torch.Tensor]:
+    """L = L_photo + lambda L_sem (Eq. 5), with the parts for logging."""
+    photo = photometric_loss(rgb, target_rgb)
+    sem = semantic_loss(logits, labels, valid)
+    return {"loss": photo + lambda_sem * sem, "photometric": photo, "semantic": sem}
+
+
+def psnr_from_mse(mse: float) -> float:
+    """PSNR in dB of images in [0, 1] (per-channel MSE)."""
+    import math
+
+    return float("inf") if mse <= 0 else -10.0 * math.log10(mse)

@@ -1,0 +1,158 @@
+"""The SRF model: field + occupancy grid + sampler, rendering batches of rays (Eq. 1 and Eq. 3).
+
+`build_model_config` turns the scene geometry and the `train` options into a JSON-able model
+config (stored in srf.zarr); `SRFModel(config)` rebuilds the same module anywhere.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn as nn
+
+from srfpipe.srf import rendering
+from srfpipe.srf.field import SemanticField, grid_resolution
+from srfpipe.srf.sampling import OccupancyGrid, SamplerSettings, generate_intervals, pack
+
+
+def scene_scale(scene_from_world) -> float:
+    """The uniform scale s of the similarity x_scene = s R x_world + t."""
+    return float(np.cbrt(np.linalg.det(np.asarray(scene_from_world, dtype=np.float64)[:3, :3])))
+
+
+def default_encoding(device) -> str:
+    """Dense grid on the CPU, hash grid on CUDA (see encodings.py for the measurements)."""
+    return "hash" if torch.device(device).type == "cuda" else "dense"
+
+
+def build_model_config(options: dict, bounds_world, scene_from_world, classes: list[str],
+                       num_images: int, device="cpu") -> dict:
+    """Model config from the `train` options and the scene geometry (bounds, normalization)."""
+    bounds_world = np.asarray(bounds_world, dtype=np.float64)
+    if bounds_world.shape != (2, 3) or not np.all(bounds_world[1] > bounds_world[0]):
+        raise ValueError(f"scene bounds must be [[min xyz], [max xyz]] with min < max, got {bounds_world.tolist()}")
+    scale = scene_scale(scene_from_world)
+    corners = np.array(np.meshgrid(*bounds_world.T)).reshape(3, -1).T
+    corners_scene = corners @ np.asarray(scene_from_world)[:3, :3].T + np.asarray(scene_from_world)[:3, 3]
+    box_min, box_max = corners_scene.min(0), corners_scene.max(0)
+    pad = float(options.get("box_padding", 0.0)) * (box_max - box_min)
+    box_min, box_max = box_min - pad, box_max + pad
+    extent = box_max - box_min
+    detail_world = options.get("detail_size")
+    if detail_world is None:  # no unit known: a fixed fraction of the scene's largest extent
+        detail_scene = float(extent.max()) / float(options.get("default_cells", 96))
+    else:
+        detail_scene = float(detail_world) * scale
+    cap = int(options.get("max_resolution", 256))
+    resolution = [grid_resolution(float(e), detail_scene, cap) for e in extent]
+    encoding = options.get("encoding", "auto")
+    encoding = default_encoding(device) if encoding == "auto" else encoding
+    contraction = bool(options.get("contraction", True))
+    features = int(options.get("features", 16))
+    if encoding == "dense":
+        inner = {"type": "dense", "resolution": resolution, "features": features}
+        g = int(options.get("outer_resolution", 48))
+        outer = {"type": "dense", "resolution": [g, g, g], "features": features} if contraction else None
+    elif encoding == "hash":
+        finest = max(resolution) * (2 if contraction else 1)
+        inner = {"type": "hash", "levels": int(options.get("hash_levels", 16)),
+                 "features_per_level": 2, "log2_table_size": int(options.get("hash_log2_table_size", 19)),
+                 "base_resolution": 16, "max_resolution": int(finest)}
+        outer = None
+    else:
+        raise ValueError(f"train.encoding must be auto, dense or hash, got {encoding!r}")
+    occupancy_resolution = [max(int(math.ceil((r - 1) / 2)), 1) for r in resolution]
+    return {
+        "box_min": box_min.tolist(), "box_max": box_max.tolist(),
+        "contraction": contraction, "inner": inner, "outer": outer,
+        "hidden": int(options.get("hidden", 64)), "geo_features": int(options.get("geo_features", 15)),
+        "sh_degree": int(options.get("sh_degree", 4)), "num_classes": len(classes),
+        "appearance_dim": int(options.get("appearance_dim", 0)), "num_images": int(num_images),
+        "density_bias": -1.0,
+        "detail_scene": detail_scene,
+        "sampler": {
+            "step": detail_scene * float(options.get("step_ratio", 1.0)),
+            "near": float(options.get("near", 0.05)), "far": float(options.get("far", 200.0)),
+            "contraction": contraction, "outer_samples": int(options.get("outer_samples", 48)),
+            "before_samples": int(options.get("before_samples", 16)),
+        },
+        "occupancy": {
+            "resolution": occupancy_resolution, "outer_resolution": int(options.get("occupancy_outer_resolution", 32)),
+            "threshold": float(options.get("occupancy_threshold", 0.01)), "decay": 0.95,
+        },
+    }
+
+
+class SRFModel(nn.Module):
+    """Renders rays given in the scene frame; returns rgb, per-class logits, depth, accumulation."""
+
+    def __init__(self, config: dict, device="cpu"):
+        super().__init__()
+        self.config = config
+        self.field = SemanticField(config, device)
+        self.settings = SamplerSettings(**config["sampler"])
+        occ = config["occupancy"]
+        self.occupancy = OccupancyGrid(
+            config["box_min"], config["box_max"], occ["resolution"], config["contraction"],
+            occ["outer_resolution"], step=self.settings.step, threshold=occ["threshold"], decay=occ["decay"],
+        )
+
+    def sample(self, origins, directions, jitter=None):
+        """Candidate intervals culled by the occupancy grid, packed (see sampling.pack)."""
+        t_start, t_end = generate_intervals(
+            origins, directions, self.field.box_min, self.field.box_max, self.settings, jitter
+        )
+        keep = t_end > t_start
+        rays, cols = keep.nonzero(as_tuple=True)
+        t_mid = 0.5 * (t_start[rays, cols] + t_end[rays, cols])
+        points = origins[rays] + directions[rays] * t_mid[:, None]
+        keep[rays, cols] = self.occupancy.occupied(points)
+        return pack(t_start, t_end, keep)
+
+    def forward(self, origins, directions, image_index=None, jitter=None) -> dict:
+        """Render rays (R, 3) in the scene frame. Returns rgb (R, 3), logits (R, C), depth (R,)
+        (scene-frame distance along the ray), accumulation (R,), samples (number evaluated)."""
+        samples = self.sample(origins, directions, jitter)
+        mask = samples.mask
+        rays = mask.nonzero(as_tuple=True)[0]
+        t_mid = samples.t_mid[mask]
+        dirs = directions[rays]
+        points = origins[rays] + dirs * t_mid[:, None]
+        sigma, h = self.field.density(points)
+        rgb = self.field.color(h, dirs, None if image_index is None else image_index[rays])
+        logits = self.field.semantics(h)
+        n, k = mask.shape
+        c = logits.shape[-1]
+        sigma_pad = torch.zeros(n, k, device=sigma.device).masked_scatter(mask, sigma.float())
+        rgb_pad = torch.zeros(n, k, 3, device=rgb.device).masked_scatter(mask.unsqueeze(-1), rgb.float())
+        sem_pad = torch.zeros(n, k, c, device=logits.device).masked_scatter(mask.unsqueeze(-1), logits.float())
+        weights = rendering.render_weights(sigma_pad, samples.delta)
+        acc = rendering.accumulation(weights)
+        color = rendering.composite_background(
+            rendering.accumulate(weights, rgb_pad), acc, self.field.background(directions)
+        )
+        # Eq. 3 with detached weights: the semantic loss reaches only F_s (and background logits)
+        sem_weights = weights.detach()
+        sem_logits = rendering.composite_background(
+            rendering.accumulate(sem_weights, sem_pad), sem_weights.sum(-1),
+            self.field.background_logits.expand(n, c),
+        )
+        return {
+            "rgb": color,
+            "logits": sem_logits,
+            "depth": rendering.expected_depth(weights, samples.t_mid),
+            "accumulation": acc,
+            "samples": int(rays.numel()),
+        }
+
+    @torch.no_grad()
+    def render_rays_chunked(self, origins, directions, chunk: int = 8192) -> dict:
+        """Inference over many rays in chunks; returns CPU float32 tensors."""
+        outputs: dict[str, list] = {"rgb": [], "logits": [], "depth": [], "accumulation": []}
+        for start in range(0, origins.shape[0], chunk):
+            out = self(origins[start:start + chunk], directions[start:start + chunk])
+            for key in outputs:
+                outputs[key].append(out[key].float().cpu())
+        return {key: torch.cat(v) if v else torch.zeros(0) for key, v in outputs.items()}

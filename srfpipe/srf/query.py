@@ -1,0 +1,117 @@
+"""The paper's query interface (Sec. 2.4) on a trained srf.zarr, in world units, numpy in and out.
+
+    srf = SemanticRadianceField.load("results/orchard/srf.zarr")       # CPU or CUDA ("auto")
+    out = srf.render(camera_to_world, intrinsics, width, height)       # Render(P)
+    p = srf.semantic(points_world)                                     # Semantic(x): (M, C) in [0, 1]
+    sigma = srf.density(points_world)                                  # Occupancy(x): (M,) per world unit
+
+Poses use the project convention (OpenCV camera frame, camera_to_world, see srfpipe.cameras).
+Work is batched internally; NaN or infinite inputs raise ValueError.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def _points(points_world, name: str = "points_world") -> np.ndarray:
+    points = np.asarray(points_world, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (M, 3), got {points.shape}")
+    if not np.all(np.isfinite(points)):
+        raise ValueError(f"{name} contains NaN or infinite coordinates")
+    return points
+
+
+class SemanticRadianceField:
+    """A trained SRF: Render, Semantic and Occupancy (density) queries in world coordinates."""
+
+    def __init__(self, model, attrs: dict, device, path: Path | None = None):
+        self.model = model
+        self.attrs = attrs
+        self.device = device
+        self.path = path
+        self.classes: list[str] = [str(c) for c in attrs["classes"]]
+        self.scene_from_world = np.asarray(attrs["scene_from_world"], dtype=np.float64)
+        self.world_from_scene = np.asarray(attrs["world_from_scene"], dtype=np.float64)
+        self.bounds_world = np.asarray(attrs["bounds_world"], dtype=np.float64)
+        self.scale = float(attrs["scene_scale"])  # scene units per world unit
+        self.batch_size = 1 << 17
+
+    @classmethod
+    def load(cls, path, device="auto") -> "SemanticRadianceField":
+        """Load srf.zarr onto `device` ("auto" = CUDA when available, else CPU)."""
+        from srfpipe.device import choose_device
+        from srfpipe.srf.io import read_srf
+
+        device = choose_device(device)
+        model, attrs = read_srf(path, device)
+        return cls(model, attrs, device, Path(path))
+
+    # ------------------------------------------------------------------ helpers
+
+    def _to_scene(self, points_world: np.ndarray):
+        import torch
+
+        p = points_world @ self.scene_from_world[:3, :3].T + self.scene_from_world[:3, 3]
+        return torch.as_tensor(p, dtype=torch.float32, device=self.device)
+
+    # ------------------------------------------------------------------ queries
+
+    def render(self, camera_to_world, intrinsics, width: int, height: int) -> dict:
+        """Render(P): rgb (H, W, 3) float32 in [0, 1], semantic (H, W, C) probabilities,
+        depth (H, W) distance along each ray in world units, accumulation (H, W) opacity."""
+        import torch
+
+        from srfpipe.cameras import transform_poses
+        from srfpipe.srf.data import image_rays
+
+        pose = np.asarray(camera_to_world, dtype=np.float64)
+        k = np.asarray(intrinsics, dtype=np.float64).reshape(-1)
+        if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+            raise ValueError(f"camera_to_world must be a finite 4x4 matrix, got shape {pose.shape}")
+        if k.shape != (4,) or not np.all(np.isfinite(k)) or k[0] <= 0 or k[1] <= 0:
+            raise ValueError(f"intrinsics must be finite (fx, fy, cx, cy) with fx, fy > 0, got {k.tolist()}")
+        width, height = int(width), int(height)
+        if width <= 0 or height <= 0:
+            raise ValueError(f"image size must be positive, got {width}x{height}")
+        pose_scene = torch.as_tensor(transform_poses(self.scene_from_world, pose), dtype=torch.float32)
+        origins, directions = image_rays(pose_scene, torch.as_tensor(k, dtype=torch.float32), width, height)
+        out = self.model.render_rays_chunked(origins.to(self.device), directions.to(self.device), 8192)
+        return {
+            "rgb": out["rgb"].clamp(0, 1).numpy().reshape(height, width, 3).astype(np.float32),
+            "semantic": out["logits"].sigmoid().numpy().reshape(height, width, -1).astype(np.float32),
+            "depth": (out["depth"].numpy() / self.scale).reshape(height, width).astype(np.float32),
+            "accumulation": out["accumulation"].numpy().reshape(height, width).astype(np.float32),
+        }
+
+    def semantic(self, points_world: np.ndarray) -> np.ndarray:
+        """Semantic(x): per-class probabilities sigmoid(s(x)) (M, C) float32."""
+        import torch
+
+        points = _points(points_world)
+        out = np.empty((points.shape[0], len(self.classes)), dtype=np.float32)
+        with torch.no_grad():
+            for start in range(0, points.shape[0], self.batch_size):
+                x = self._to_scene(points[start:start + self.batch_size])
+                _, h = self.model.field.density(x)
+                out[start:start + len(x)] = self.model.field.semantics(h).float().sigmoid().cpu().numpy()
+        return out
+
+    def density(self, points_world: np.ndarray) -> np.ndarray:
+        """Occupancy(x): sigma (M,) float32 per *world* unit length (scene sigma times the scene
+        scale), 0 outside the scene bounds."""
+        import torch
+
+        points = _points(points_world)
+        out = np.empty(points.shape[0], dtype=np.float32)
+        with torch.no_grad():
+            for start in range(0, points.shape[0], self.batch_size):
+                x = self._to_scene(points[start:start + self.batch_size])
+                sigma, _ = self.model.field.density(x)
+                out[start:start + len(x)] = sigma.float().cpu().numpy() * self.scale
+        inside = np.all((points >= self.bounds_world[0]) & (points <= self.bounds_world[1]), axis=1)
+        out[~inside] = 0.0
+        return out

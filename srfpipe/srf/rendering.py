@@ -1,0 +1,67 @@
+"""Volumetric rendering along rays: the paper's Eq. 1 (colour) and Eq. 3 (semantic logits).
+
+Samples are stored padded, (R, K): R rays with up to K intervals each; a padded slot has
+delta = 0 (and so contributes nothing). Everything here is a small pure function, computed in
+float32 whatever autocast says, because transmittance is a product of many terms.
+
+    weights_k = T_k * alpha(sigma_k * delta_k),   T_k = exp(-sum_{a<k} sigma_a delta_a),
+    alpha(x) = 1 - exp(-x)
+
+>>> import torch
+>>> w = render_weights(torch.tensor([[1e12, 1.0]]), torch.tensor([[1.0, 1.0]]))
+>>> w.tolist()
+[[1.0, 0.0]]
+"""
+
+from __future__ import annotations
+
+import torch
+
+# Optical thickness at which a sample is already fully opaque in float32 (exp(-80) ~ 1e-35):
+# clamping here keeps huge sigma*delta products finite without changing any weight.
+MAX_OPTICAL_THICKNESS = 80.0
+
+
+def optical_thickness(sigma: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+    """tau_k = sigma_k * delta_k (R, K), in float32, clamped to [0, MAX_OPTICAL_THICKNESS]."""
+    tau = sigma.float() * delta.float()
+    return tau.clamp(0.0, MAX_OPTICAL_THICKNESS)
+
+
+def transmittance(tau: torch.Tensor) -> torch.Tensor:
+    """T_k = exp(-sum_{a<k} tau_a): an *exclusive* cumulative sum, never cumsum(tau) - tau.
+
+    Subtracting would cancel catastrophically once the sum is huge; shifting keeps it exact.
+    """
+    k = tau.shape[-1]
+    zeros = torch.zeros_like(tau[..., :1])
+    exclusive = torch.cat([zeros, torch.cumsum(tau, dim=-1)], dim=-1)[..., :k]
+    return torch.exp(-exclusive)
+
+
+def render_weights(sigma: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+    """Eq. 1 weights w_k = T_k alpha(sigma_k delta_k) for samples (…, K); sum_k w_k <= 1."""
+    tau = optical_thickness(sigma, delta)
+    alpha = -torch.expm1(-tau)  # 1 - exp(-x), exact for tiny x
+    return transmittance(tau) * alpha
+
+
+def accumulate(weights: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """sum_k w_k v_k: weights (…, K), values (…, K, D) -> (…, D). Used for rgb (Eq. 1) and logits (Eq. 3)."""
+    return torch.sum(weights.unsqueeze(-1) * values.float(), dim=-2)
+
+
+def accumulation(weights: torch.Tensor) -> torch.Tensor:
+    """Opacity of each ray, sum_k w_k = 1 - T_{K+1} (…,)."""
+    return weights.sum(dim=-1)
+
+
+def expected_depth(weights: torch.Tensor, t_mid: torch.Tensor, eps: float = 1e-10) -> torch.Tensor:
+    """Depth along the ray, sum_k w_k t_k / sum_k w_k (…,); 0 for a ray that hits nothing."""
+    acc = accumulation(weights)
+    return torch.sum(weights * t_mid.float(), dim=-1) / (acc + eps)
+
+
+def composite_background(value: torch.Tensor, acc: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
+    """value + (1 - acc) * background: what the ray sees beyond the last sample."""
+    return value + (1.0 - acc).unsqueeze(-1) * background.float()

@@ -1,0 +1,237 @@
+"""Where to put samples along rays: near/far from the model box, and an occupancy grid that
+skips empty space (nerfacc's estimator, written in plain torch so it runs on CPU and CUDA).
+
+Intervals along a ray come from up to three segments (scene-frame distances t):
+
+* inside the model box [t_enter, t_exit]: uniform steps of `step` (a fraction of the detail size);
+* with contraction, beyond the box [t_exit, far]: `outer_samples` steps uniform in
+  s = (t - a) / (t - a + L), i.e. in disparity, so far space costs a fixed number of samples;
+* with contraction, between the camera and the box [near, t_enter]: `before_samples` uniform steps.
+
+Segments are covered completely (no gaps), so dropping an interval is exactly sigma = 0 there.
+Training jitters every ray by one random fraction of a step (stratified sampling).
+Intervals in unoccupied cells are then dropped and the rest packed to the front: (R, K') padded
+with `mask`, which is what `srfpipe.srf.rendering` consumes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn as nn
+
+from srfpipe.srf.field import contract, uncontract
+
+
+@dataclass
+class RaySamples:
+    """Padded intervals: t_start, t_end, mask (R, K); intervals with mask False are padding."""
+
+    t_start: torch.Tensor
+    t_end: torch.Tensor
+    mask: torch.Tensor
+
+    @property
+    def t_mid(self) -> torch.Tensor:
+        return 0.5 * (self.t_start + self.t_end)
+
+    @property
+    def delta(self) -> torch.Tensor:
+        return torch.where(self.mask, self.t_end - self.t_start, torch.zeros_like(self.t_start))
+
+
+def ray_aabb(origins, directions, box_min, box_max):
+    """Slab test: entry and exit distances (R,) of rays against an axis-aligned box.
+
+    A ray that misses gets t_exit < t_enter. Axis-parallel rays are handled by IEEE infinities.
+    """
+    with torch.no_grad():
+        inv = 1.0 / torch.where(directions == 0, torch.full_like(directions, 1e-12), directions)
+        t0 = (box_min - origins) * inv
+        t1 = (box_max - origins) * inv
+        t_enter = torch.minimum(t0, t1).amax(dim=-1)
+        t_exit = torch.maximum(t0, t1).amin(dim=-1)
+    return t_enter, t_exit
+
+
+def _uniform_edges(start, end, count: int, jitter):
+    """count + 1 intervals tiling [start, end] per ray (the jitter shifts them by a step fraction,
+    so one extra interval closes the end)."""
+    k = torch.arange(count + 2, device=start.device, dtype=start.dtype)
+    step = (end - start).clamp_min(0) / count
+    edges = start[:, None] + (k[None, :] - 1.0 + jitter[:, None]) * step[:, None]
+    return torch.minimum(torch.maximum(edges, start[:, None]), torch.maximum(end, start)[:, None])
+
+
+def _fixed_step_edges(start, end, step: float, count: int, jitter):
+    """Intervals of length `step` from `start`, clipped to `end` (count chosen to reach any end)."""
+    k = torch.arange(count + 1, device=start.device, dtype=start.dtype)
+    edges = start[:, None] + (k[None, :] - 1.0 + jitter[:, None]) * step
+    return torch.minimum(torch.maximum(edges, start[:, None]), torch.maximum(end, start)[:, None])
+
+
+def _disparity_edges(start, far: float, scale: float, count: int, jitter):
+    """count + 1 intervals tiling [start, far], uniform in s = (t - start) / (t - start + scale)."""
+    k = torch.arange(count + 2, device=start.device, dtype=start.dtype)
+    span = (far - start).clamp_min(0)
+    s_far = span / (span + scale)
+    s = ((k[None, :] - 1.0 + jitter[:, None]) / count).clamp(0.0, 1.0) * s_far[:, None]
+    return start[:, None] + scale * s / (1.0 - s)
+
+
+def _intervals(edges):
+    return edges[:, :-1], edges[:, 1:]
+
+
+@dataclass
+class SamplerSettings:
+    step: float  # scene-frame length of one step inside the box
+    near: float = 0.05
+    far: float = 200.0
+    contraction: bool = True
+    outer_samples: int = 48
+    before_samples: int = 16
+
+
+def generate_intervals(origins, directions, box_min, box_max, settings: SamplerSettings, jitter=None):
+    """All candidate intervals (t_start, t_end) (R, K) before occupancy culling, sorted along t."""
+    n = origins.shape[0]
+    jitter = torch.full((n,), 0.5, device=origins.device) if jitter is None else jitter
+    t_enter, t_exit = ray_aabb(origins, directions, box_min, box_max)
+    t0 = t_enter.clamp_min(settings.near)
+    hit = t_exit > t0
+    t1 = torch.where(hit, t_exit, t0)
+    diagonal = float(torch.linalg.norm(box_max - box_min))
+    count_in = int(math.ceil(diagonal / settings.step)) + 1
+    parts = [_intervals(_fixed_step_edges(t0, t1, settings.step, count_in, jitter))]
+    if settings.contraction:
+        near = torch.full_like(t0, settings.near)
+        before_end = torch.where(hit, t0, near)  # a ray that misses the box is all "beyond"
+        if settings.before_samples > 0:
+            parts.insert(0, _intervals(_uniform_edges(near, before_end, settings.before_samples, jitter)))
+        scale = float((box_max - box_min).amax()) * 0.5
+        after_start = torch.where(hit, t1, near)
+        parts.append(_intervals(_disparity_edges(after_start, settings.far, scale, settings.outer_samples, jitter)))
+    t_start = torch.cat([p[0] for p in parts], dim=1)
+    t_end = torch.cat([p[1] for p in parts], dim=1)
+    return t_start, t_end
+
+
+def pack(t_start, t_end, keep) -> RaySamples:
+    """Move kept intervals to the front of each ray (order preserved) and drop empty columns."""
+    counts = keep.sum(dim=1)
+    width = int(counts.max()) if counts.numel() else 0
+    order = torch.sort((~keep).to(torch.uint8), dim=1, stable=True).indices[:, :width]
+    mask = torch.arange(width, device=keep.device)[None, :] < counts[:, None]
+    return RaySamples(t_start.gather(1, order), t_end.gather(1, order), mask)
+
+
+class OccupancyGrid(nn.Module):
+    """Binary occupancy over the model box (level 0) and, with contraction, over the contracted
+    cube [-2, 2]^3 (level 1, used only outside the box), updated from the field during training:
+
+        occ <- max(decay * occ, sigma(x_jittered) * step)   for a subset of cells
+        occupied = occ > min(mean(occ), threshold)
+
+    (nerfacc's OccGridEstimator rule; distillation into the occupancy cache is the same operation.)
+    """
+
+    def __init__(self, box_min, box_max, resolution, contraction: bool, outer_resolution: int = 32,
+                 step: float = 0.01, threshold: float = 0.01, decay: float = 0.95):
+        super().__init__()
+        self.register_buffer("box_min", torch.as_tensor(box_min, dtype=torch.float32).clone())
+        self.register_buffer("box_max", torch.as_tensor(box_max, dtype=torch.float32).clone())
+        self.resolution = tuple(int(r) for r in resolution)
+        self.contraction = bool(contraction)
+        self.outer_resolution = int(outer_resolution) if contraction else 1
+        self.step = float(step)
+        self.threshold = float(threshold)
+        self.decay = float(decay)
+        n0 = math.prod(self.resolution)
+        n1 = self.outer_resolution**3 if self.contraction else 1
+        self.register_buffer("occ0", torch.zeros(n0))
+        self.register_buffer("occ1", torch.zeros(n1))
+        self.register_buffer("binary0", torch.ones(n0, dtype=torch.bool))
+        self.register_buffer("binary1", torch.ones(n1, dtype=torch.bool))
+
+    def _u(self, x):
+        centre = 0.5 * (self.box_min + self.box_max)
+        half = 0.5 * (self.box_max - self.box_min)
+        return (x.float() - centre) / half
+
+    def _x(self, u):
+        centre = 0.5 * (self.box_min + self.box_max)
+        half = 0.5 * (self.box_max - self.box_min)
+        return u * half + centre
+
+    def _index0(self, u):
+        res = torch.tensor(self.resolution, device=u.device)
+        cell = ((u + 1.0) * 0.5 * res).floor().long()
+        cell = torch.minimum(cell.clamp_min(0), res - 1)
+        return (cell[:, 0] * res[1] + cell[:, 1]) * res[2] + cell[:, 2]
+
+    def _index1(self, v):
+        g = self.outer_resolution
+        cell = ((v + 2.0) * 0.25 * g).floor().long().clamp(0, g - 1)
+        return (cell[:, 0] * g + cell[:, 1]) * g + cell[:, 2]
+
+    @torch.no_grad()
+    def occupied(self, x: torch.Tensor) -> torch.Tensor:
+        """Whether scene-frame points (M, 3) lie in occupied cells (outside the field: False)."""
+        u = self._u(x)
+        inside = (u.abs() <= 1.0).all(dim=-1)
+        result = self.binary0[self._index0(u)] & inside
+        if self.contraction:
+            result = torch.where(inside, result, self.binary1[self._index1(contract(u))])
+        return result
+
+    def _cell_points(self, level: int, cells: torch.Tensor, generator) -> torch.Tensor:
+        """A jittered scene-frame point inside each of the given cells."""
+        jitter = torch.rand(cells.shape[0], 3, generator=generator, device=cells.device)
+        if level == 0:
+            rx, ry, rz = self.resolution
+            ijk = torch.stack([cells // (ry * rz), (cells // rz) % ry, cells % rz], dim=-1)
+            res = torch.tensor(self.resolution, device=cells.device, dtype=torch.float32)
+            return self._x((ijk + jitter) / res * 2.0 - 1.0)
+        g = self.outer_resolution
+        ijk = torch.stack([cells // (g * g), (cells // g) % g, cells % g], dim=-1)
+        v = ((ijk + jitter) / g * 4.0 - 2.0).clamp(-2.0 + 1e-4, 2.0 - 1e-4)
+        return self._x(uncontract(v))
+
+    @torch.no_grad()
+    def update(self, density_fn, generator, all_cells: bool, chunk: int = 1 << 18) -> None:
+        """One EMA update: every cell (warm-up) or a random quarter plus a quarter of occupied cells."""
+        levels = [(0, self.occ0, self.binary0)]
+        if self.contraction:
+            levels.append((1, self.occ1, self.binary1))
+        for level, occ, binary in levels:
+            n = occ.numel()
+            if all_cells:
+                cells = torch.arange(n, device=occ.device)
+            else:
+                random_cells = torch.randint(0, n, (max(n // 4, 1),), generator=generator, device=occ.device)
+                occupied_cells = binary.nonzero().squeeze(1)
+                if occupied_cells.numel() > n // 4:
+                    pick = torch.randint(0, occupied_cells.numel(), (n // 4,), generator=generator,
+                                         device=occ.device)
+                    occupied_cells = occupied_cells[pick]
+                cells = torch.cat([random_cells, occupied_cells])
+            values = torch.empty(cells.shape[0], device=occ.device)
+            for start in range(0, cells.shape[0], chunk):
+                points = self._cell_points(level, cells[start:start + chunk], generator)
+                values[start:start + chunk] = density_fn(points).float() * self.step
+            current = occ[cells] * self.decay
+            occ.index_put_((cells,), torch.maximum(current, values))
+            if level == 1:  # cells inside the box belong to level 0
+                g = self.outer_resolution
+                centre = (torch.arange(g, device=occ.device) + 0.5) / g * 4.0 - 2.0
+                inner = (centre.abs() < 1.0)
+                inner3 = inner[:, None, None] & inner[None, :, None] & inner[None, None, :]
+                occ.masked_fill_(inner3.reshape(-1), 0.0)
+            threshold = min(float(occ.mean()), self.threshold)
+            binary.copy_(occ > threshold)
+
+    def occupied_fraction(self) -> float:
+        return float(self.binary0.float().mean())

@@ -1,0 +1,335 @@
+"""Train the semantic radiance field on posed images and multi-hot labels -> srf.zarr.
+
+Loss L = L_photo + lambda L_sem (paper Eq. 4-5), Adam (lr 1e-2, exponential decay), a random
+batch of rays from the training views per step (every `evaluate.holdout_every`-th view is held
+out). Checkpoints (`step-000001000.pt`, plain tensor dicts read with weights_only=True) are
+written every `checkpoint_every` steps beside the output, and a re-run resumes from the latest
+one whose fingerprint (options, model config, inputs) matches; ray sampling draws from a
+generator seeded by (seed, step), so a resumed run ends with the same weights on the CPU.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import logging
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger("srfpipe.train")
+
+
+def add_arguments(parser) -> None:
+    from srfpipe.config import add_options_arguments
+
+    parser.add_argument("--images", required=True, metavar="ZARR", help="images.zarr (stage downscale)")
+    parser.add_argument("--labels", required=True, metavar="ZARR", help="labels.zarr (stage composite)")
+    parser.add_argument("--out", required=True, metavar="ZARR", help="output srf.zarr")
+    parser.add_argument("--checkpoints", metavar="DIR",
+                        help="checkpoint folder (default: <out without .zarr>.ckpt beside the output)")
+    parser.add_argument("--metrics-log", metavar="JSONL", help="append per-step metrics here (JSON lines)")
+    parser.add_argument("--holdout-every", type=int, default=None,
+                        help="hold out every k-th view (default: the scene's evaluate.holdout_every)")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    add_options_arguments(parser, "train")
+
+
+def run(args) -> int:
+    from srfpipe.config import stage_options, validate_scene, load_scene
+
+    options = stage_options(args, "train")
+    holdout = args.holdout_every
+    if holdout is None:
+        scene = load_scene(args.scene) if args.scene else validate_scene({})
+        holdout = scene["evaluate"]["holdout_every"]
+    train(
+        images=args.images, labels=args.labels, out=args.out, options=options,
+        holdout_every=holdout, checkpoints=args.checkpoints, metrics_log=args.metrics_log,
+        threads=args.threads,
+    )
+    return 0
+
+
+# ----------------------------------------------------------------------------- pieces
+
+
+def step_generator(seed: int, step: int, device="cpu"):
+    """The random stream of one training step: a pure function of (seed, step)."""
+    import torch
+
+    digest = hashlib.sha256(f"{seed}:{step}".encode()).digest()
+    return torch.Generator(device=device).manual_seed(int.from_bytes(digest[:8], "little") >> 1)
+
+
+def learning_rate(step: int, iterations: int, lr: float, lr_final: float) -> float:
+    """Exponential decay from lr to lr_final over the run."""
+    return lr * (lr_final / lr) ** min(step / max(iterations, 1), 1.0)
+
+
+def fingerprint(options: dict, model_config: dict, inputs: list[dict]) -> str:
+    """Identity of a training run: resume only from checkpoints with the same one."""
+    relevant = {k: v for k, v in options.items() if k not in ("checkpoint_every", "log_every", "eval_every")}
+    blob = json.dumps([relevant, model_config, inputs], sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def latest_checkpoint(folder: Path, fp: str):
+    """The checkpoint with the highest step written by a run with fingerprint `fp`, or None."""
+    import torch
+
+    if not folder.is_dir():
+        return None
+    for path in sorted(folder.glob("step-*.pt"), reverse=True):
+        try:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # a checkpoint cut short by a kill: try the one before
+            log.warning("ignoring unreadable checkpoint %s (%s)", path, exc)
+            continue
+        if state.get("fingerprint") == fp:
+            return state
+        log.info("ignoring checkpoint %s from a run with different settings", path)
+    return None
+
+
+def save_checkpoint(folder: Path, state: dict, keep: int = 2) -> None:
+    """Write step-XXXXXXXXX.pt atomically, keeping the newest `keep`."""
+    import torch
+
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"step-{state['step']:09d}.pt"
+    tmp = path.with_suffix(".pt.tmp")
+    torch.save(state, tmp)
+    tmp.replace(path)
+    for old in sorted(folder.glob("step-*.pt"))[:-keep]:
+        old.unlink(missing_ok=True)
+
+
+def autocast_context(device, precision: str):
+    """Mixed precision: bf16 (or fp16) autocast on CUDA by default, fp32 on the CPU unless asked."""
+    import torch
+
+    if precision == "auto":
+        precision = "bf16" if device.type == "cuda" and torch.cuda.is_bf16_supported() else (
+            "fp16" if device.type == "cuda" else "fp32")
+    if precision == "fp32":
+        return contextlib.nullcontext(), precision
+    dtype = torch.bfloat16 if precision == "bf16" else torch.float16
+    return torch.autocast(device.type, dtype=dtype), precision
+
+
+def sample_batch(data, train_views, count: int, generator, device):
+    """A random batch of pixels from the training views: rays, target rgb, multi-hot labels."""
+    import torch
+
+    from srfpipe.srf.data import rays_for_pixels
+
+    views = torch.as_tensor(train_views)
+    image = views[torch.randint(0, len(views), (count,), generator=generator)]
+    u = torch.randint(0, data.width, (count,), generator=generator)
+    v = torch.randint(0, data.height, (count,), generator=generator)
+    origins, directions = rays_for_pixels(data.poses_scene[image], data.intrinsics[image], u, v)
+    rgb = data.images[image, v, u].float() / 255.0
+    labels = data.multihot[image, v, u].float() if data.multihot is not None else None
+    return (origins.to(device), directions.to(device), image.to(device), rgb.to(device),
+            None if labels is None else labels.to(device))
+
+
+def render_view(model, data, index: int, device, chunk: int = 8192) -> dict:
+    """Render one view of `data` (scene-frame pose) into numpy images."""
+    from srfpipe.srf.data import image_rays
+
+    origins, directions = image_rays(data.poses_scene[index], data.intrinsics[index], data.width, data.height)
+    out = model.render_rays_chunked(origins.to(device), directions.to(device), chunk)
+    h, w = data.height, data.width
+    return {
+        "rgb": out["rgb"].clamp(0, 1).numpy().reshape(h, w, 3),
+        "probabilities": out["logits"].sigmoid().numpy().reshape(h, w, -1),
+        "depth": out["depth"].numpy().reshape(h, w),
+        "accumulation": out["accumulation"].numpy().reshape(h, w),
+    }
+
+
+def quick_eval(model, data, views, device, max_views: int = 4) -> dict:
+    """Held-out PSNR and mIoU (vs composited labels, and ground truth when present) on a few views."""
+    from srfpipe.srf import metrics
+
+    mses, conf, conf_gt = [], None, None
+    c = len(data.classes)
+    for index in list(views)[:max_views]:
+        out = render_view(model, data, int(index), device)
+        target = data.images[index].numpy() / 255.0
+        mses.append(float(((out["rgb"] - target) ** 2).mean()))
+        pred = metrics.label_from_probabilities(out["probabilities"])
+        if data.label is not None:
+            m = metrics.confusion(pred, data.label[index], c + 1)
+            conf = m if conf is None else conf + m
+        if data.gt_label is not None:
+            gt = remap_ground_truth(data.gt_label[index], data.gt_classes, data.classes)
+            m = metrics.confusion(pred, gt, c + 1)
+            conf_gt = m if conf_gt is None else conf_gt + m
+    result = {"psnr": -10.0 * math.log10(max(float(np.mean(mses)), 1e-12))}
+    if conf is not None:
+        result["miou"] = float(np.nanmean(metrics.iou_from_confusion(conf)))
+    if conf_gt is not None:
+        result["miou_gt"] = float(np.nanmean(metrics.iou_from_confusion(conf_gt)))
+    return result
+
+
+def remap_ground_truth(gt: np.ndarray, gt_classes: list[str], classes: list[str]) -> np.ndarray:
+    """Ground-truth label image in the trained class order (1 + index in `classes`, 0 otherwise)."""
+    lookup = np.zeros(256, dtype=np.uint8)
+    for value, name in enumerate(gt_classes):
+        if name in classes:
+            lookup[value] = classes.index(name) + 1
+    return lookup[gt]
+
+
+# ----------------------------------------------------------------------------- training
+
+
+def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoints=None,
+          metrics_log=None, threads: int | None = None) -> dict:
+    """Train and write srf.zarr; returns a summary (steps, seconds, final metrics)."""
+    import torch
+    from tqdm import tqdm
+
+    from srfpipe.artifacts import read_provenance
+    from srfpipe.device import choose_device
+    from srfpipe.srf import io, losses
+    from srfpipe.srf.data import load_posed_images, split_views
+    from srfpipe.srf.model import SRFModel, build_model_config, scene_scale
+
+    if threads:
+        torch.set_num_threads(int(threads))
+    out = Path(out)
+    device = choose_device(options.get("device", "auto"))
+    data = load_posed_images(images, labels)
+    if not data.classes:
+        raise ValueError(f"{labels}: no classes to train (attribute 'classes' is empty)")
+    train_views, heldout_views = split_views(data.count, holdout_every)
+    seed = int(options.get("seed", 0))
+    iterations = int(options["iterations"])
+    batch = int(options["rays_per_batch"])
+    lambda_sem = float(options.get("lambda_sem", 1.0))
+
+    torch.manual_seed(seed)
+    config = build_model_config(options, data.bounds_world, data.scene_from_world, data.classes,
+                                data.count, device)
+    model = SRFModel(config, device).to(device)
+    fused = device.type in ("cpu", "cuda")
+    optimizer = torch.optim.Adam(model.parameters(), lr=float(options["lr"]), eps=1e-15, fused=fused)
+    scaler_needed = False
+    autocast, precision = autocast_context(device, options.get("precision", "auto"))
+    if precision == "fp16" and device.type == "cuda":
+        scaler = torch.amp.GradScaler("cuda")
+        scaler_needed = True
+
+    inputs = [{"path": str(p), "created": read_provenance(p).get("created")} for p in (images, labels)]
+    fp = fingerprint(options, config, inputs + [{"holdout_every": holdout_every}])
+    ckpt_dir = Path(checkpoints) if checkpoints else out.with_name(out.name.removesuffix(".zarr") + ".ckpt")
+    curve = {k: [] for k in ("step", "seconds", "loss", "photometric", "semantic", "psnr", "samples_per_ray", "occupied")}
+    eval_curve = {k: [] for k in ("step", "seconds", "psnr", "miou", "miou_gt")}
+    start_step, train_seconds = 0, 0.0
+    state = latest_checkpoint(ckpt_dir, fp)
+    if state is not None:
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        start_step, train_seconds = int(state["step"]), float(state["train_seconds"])
+        curve = {k: list(v) for k, v in state["curve"].items()}
+        eval_curve = {k: list(v) for k, v in state["eval_curve"].items()}
+        log.info("resuming from %s at step %d", ckpt_dir, start_step)
+
+    log_file = open(metrics_log, "a") if metrics_log else None
+    update_every = int(options.get("occupancy_update_every", 16))
+    warmup = int(options.get("occupancy_warmup", 256))
+    checkpoint_every = int(options.get("checkpoint_every", 500))
+    log_every = int(options.get("log_every", 25))
+    eval_every = int(options.get("eval_every", 0))
+    lr, lr_final = float(options["lr"]), float(options.get("lr_final", options["lr"] * 0.1))
+    scale = scene_scale(data.scene_from_world)
+    model.train()
+    bar = tqdm(range(start_step, iterations), initial=start_step, total=iterations, desc="train",
+               dynamic_ncols=True, mininterval=1.0)
+    try:
+        for step in bar:
+            tick = time.perf_counter()
+            generator = step_generator(seed, step)
+            if step > 0 and step % update_every == 0:
+                model.occupancy.update(lambda x: model.field.density(x)[0], generator, all_cells=step < warmup)
+            for group in optimizer.param_groups:
+                group["lr"] = learning_rate(step, iterations, lr, lr_final)
+            origins, directions, image, rgb, labels_batch = sample_batch(data, train_views, batch, generator, device)
+            jitter = torch.rand(batch, generator=generator).to(device)
+            with autocast:
+                outputs = model(origins, directions, image, jitter)
+            parts = losses.total_loss(outputs["rgb"], rgb, outputs["logits"], labels_batch, lambda_sem)
+            optimizer.zero_grad(set_to_none=True)
+            if scaler_needed:
+                scaler.scale(parts["loss"]).backward()
+                scaler.step(optimizer)
+                scaler.update()
+            else:
+                parts["loss"].backward()
+                optimizer.step()
+            train_seconds += time.perf_counter() - tick
+            done = step + 1
+            if done % log_every == 0 or done == iterations:
+                photo = float(parts["photometric"].detach())
+                record = {
+                    "step": done, "seconds": round(train_seconds, 3), "loss": float(parts["loss"].detach()),
+                    "photometric": photo, "semantic": float(parts["semantic"].detach()),
+                    "psnr": losses.psnr_from_mse(photo / 3.0),
+                    "samples_per_ray": outputs["samples"] / batch,
+                    "occupied": model.occupancy.occupied_fraction(),
+                }
+                for key, value in record.items():
+                    curve[key].append(value)
+                bar.set_postfix(loss=f"{record['loss']:.4f}", psnr=f"{record['psnr']:.2f}",
+                                spr=f"{record['samples_per_ray']:.1f}")
+                if log_file:
+                    log_file.write(json.dumps(record) + "\n")
+                    log_file.flush()
+            if eval_every and (done % eval_every == 0 or done == iterations):
+                model.eval()
+                result = quick_eval(model, data, heldout_views, device)
+                model.train()
+                eval_curve["step"].append(done)
+                eval_curve["seconds"].append(train_seconds)
+                for key in ("psnr", "miou", "miou_gt"):
+                    eval_curve[key].append(result.get(key, float("nan")))
+                log.info("step %d held-out %s", done, result)
+                if log_file:
+                    log_file.write(json.dumps({"step": done, "seconds": train_seconds, "heldout": result}) + "\n")
+            if checkpoint_every and done % checkpoint_every == 0 and done < iterations:
+                save_checkpoint(ckpt_dir, {
+                    "step": done, "fingerprint": fp, "model": model.state_dict(),
+                    "optimizer": optimizer.state_dict(), "train_seconds": train_seconds,
+                    "curve": curve, "eval_curve": eval_curve,
+                })
+    finally:
+        bar.close()
+        if log_file:
+            log_file.close()
+
+    model.eval()
+    summary = {"iterations": iterations, "train_seconds": train_seconds, "precision": precision,
+               "device": str(device)}
+    io.write_srf(
+        out, model, config=options, inputs=[images, labels], curve=curve,
+        eval_curve={k: v for k, v in eval_curve.items() if v} if eval_curve["step"] else None,
+        classes=data.classes, scene_from_world=data.scene_from_world, world_from_scene=data.world_from_scene,
+        bounds_world=data.bounds_world, scene_scale=scale, holdout_every=holdout_every,
+        train_views=train_views, heldout_views=heldout_views, train_seconds=train_seconds,
+        precision=precision, device=str(device), fingerprint=fp,
+        final=({k: curve[k][-1] for k in curve} if curve["step"] else {}),
+    )
+    if not options.get("keep_checkpoints", False) and ckpt_dir.is_dir():
+        for path in ckpt_dir.glob("step-*.pt"):
+            path.unlink()
+        with contextlib.suppress(OSError):
+            ckpt_dir.rmdir()
+    return summary

@@ -1,0 +1,90 @@
+"""The field: semantic heads cannot move geometry, encodings, contraction, the query API."""
+
+import numpy as np
+import pytest
+import torch
+
+from srfpipe.cameras import scene_from_world_transform
+from srfpipe.config import section_defaults
+from srfpipe.srf import losses
+from srfpipe.srf.encodings import DenseGrid, HashGrid
+from srfpipe.srf.field import contract, spherical_harmonics, uncontract
+from srfpipe.srf.model import SRFModel, build_model_config
+
+BOUNDS = np.array([[-1.0, -1.0, 0.0], [1.0, 1.0, 1.5]])
+
+
+def small_model(encoding="dense", **overrides):
+    options = section_defaults("train")
+    options.update(encoding=encoding, default_cells=16, outer_resolution=8, hidden=16, **overrides)
+    config = build_model_config(options, BOUNDS, scene_from_world_transform(*BOUNDS), ["a", "b", "c"], 4)
+    torch.manual_seed(0)
+    return SRFModel(config)
+
+
+def rays(n=64, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    origins = torch.randn(n, 3, generator=g)
+    origins = origins / origins.norm(dim=1, keepdim=True) * 2.5
+    directions = -origins + 0.3 * torch.randn(n, 3, generator=g)
+    return origins, directions / directions.norm(dim=1, keepdim=True)
+
+
+@pytest.mark.parametrize("encoding", ["dense", "hash"])
+def test_semantic_loss_sends_no_gradient_into_density_parameters(encoding):
+    model = small_model(encoding)
+    origins, directions = rays()
+    out = model(origins, directions)
+    assert out["samples"] > 0
+    labels = torch.randint(0, 2, out["logits"].shape).float()
+    losses.semantic_loss(out["logits"], labels).backward()
+    for p in model.field.density_parameters():
+        assert p.grad is None or torch.count_nonzero(p.grad) == 0
+    assert any(p.grad is not None and torch.count_nonzero(p.grad) > 0 for p in model.field.semantic_mlp.parameters())
+    # while the photometric loss does reach the geometry
+    model.zero_grad()
+    out = model(origins, directions)
+    losses.photometric_loss(out["rgb"], torch.rand_like(out["rgb"])).backward()
+    assert any(p.grad is not None and torch.count_nonzero(p.grad) > 0 for p in model.field.density_parameters())
+
+
+def test_dense_grid_interpolates_trilinearly_and_hits_the_corners():
+    grid = DenseGrid((3, 4, 5), features=2)
+    with torch.no_grad():
+        table = grid.table.view(3, 4, 5, 2)
+        ijk = torch.stack(torch.meshgrid(*[torch.arange(r) for r in (3, 4, 5)], indexing="ij"), -1).float()
+        table.copy_(torch.stack([ijk @ torch.tensor([1.0, 2.0, 3.0]), ijk[..., 0] * 0 + 7], -1))
+    u = torch.rand(100, 3) * 2 - 1
+    pos = (u + 1) / 2 * torch.tensor([2.0, 3.0, 4.0])
+    out = grid(u)
+    # a linear function of the grid index is reproduced exactly by trilinear interpolation
+    assert torch.allclose(out[:, 0], pos @ torch.tensor([1.0, 2.0, 3.0]), atol=1e-4)
+    assert torch.allclose(out[:, 1], torch.full((100,), 7.0))
+    corner = grid(torch.tensor([[1.0, 1.0, 1.0]]))
+    assert torch.allclose(corner[0, 0], torch.tensor(2 * 1 + 3 * 2 + 4 * 3.0))
+
+
+def test_hash_grid_output_shape_and_gradients():
+    enc = HashGrid(levels=4, features_per_level=2, log2_table_size=10, base_resolution=4, max_resolution=64)
+    u = (torch.rand(50, 3) * 2 - 1)
+    out = enc(u)
+    assert out.shape == (50, 8)
+    out.square().sum().backward()
+    assert torch.isfinite(enc.table.grad).all() and enc.table.grad.abs().sum() > 0
+
+
+def test_contraction_round_trip_and_range():
+    u = torch.randn(1000, 3) * 5
+    v = contract(u)
+    assert (v.abs() < 2).all()
+    assert torch.allclose(uncontract(v), u, rtol=1e-3, atol=1e-4)
+    inside = torch.rand(10, 3) * 2 - 1
+    assert torch.equal(contract(inside), inside)
+
+
+def test_spherical_harmonics_are_orthonormal_on_the_sphere():
+    d = torch.randn(200000, 3, dtype=torch.float64)
+    d = d / d.norm(dim=1, keepdim=True)
+    y = spherical_harmonics(d, 4).double()
+    gram = (y.T @ y) / d.shape[0] * 4 * np.pi
+    assert torch.allclose(gram, torch.eye(16, dtype=torch.float64), atol=0.05)

@@ -1,0 +1,80 @@
+"""Volumetric rendering (Eq. 1 / Eq. 3) against closed forms and at numerical extremes."""
+
+import math
+
+import pytest
+import torch
+
+from srfpipe.srf import rendering
+
+
+def test_homogeneous_medium_transmittance_is_exponential():
+    sigma, delta, k = 0.7, 0.05, 200
+    s = torch.full((1, k), sigma)
+    d = torch.full((1, k), delta)
+    tau = rendering.optical_thickness(s, d)
+    t = rendering.transmittance(tau)[0]
+    distances = torch.arange(k) * delta  # T at the start of each interval
+    assert torch.allclose(t, torch.exp(-sigma * distances), rtol=1e-5, atol=1e-7)
+    weights = rendering.render_weights(s, d)
+    # the weights telescope: sum_k w_k = 1 - T(end)
+    assert math.isclose(float(weights.sum()), 1 - math.exp(-sigma * delta * k), rel_tol=1e-5)
+
+
+def test_single_opaque_sample_has_weight_one_and_hides_the_rest():
+    sigma = torch.tensor([[0.0, 1e6, 5.0, 5.0]])
+    delta = torch.tensor([[0.1, 0.1, 0.1, 0.1]])
+    w = rendering.render_weights(sigma, delta)
+    assert torch.allclose(w, torch.tensor([[0.0, 1.0, 0.0, 0.0]]))
+    colours = torch.tensor([[[0.0, 0, 0], [0.2, 0.4, 0.6], [1, 1, 1], [1, 1, 1]]])
+    assert torch.allclose(rendering.accumulate(w, colours), torch.tensor([[0.2, 0.4, 0.6]]))
+    depth = rendering.expected_depth(w, torch.tensor([[0.05, 0.15, 0.25, 0.35]]))
+    assert torch.allclose(depth, torch.tensor([0.15]))
+
+
+def test_background_fills_the_remaining_transmittance():
+    w = rendering.render_weights(torch.tensor([[2.0]]), torch.tensor([[0.5]]))
+    acc = rendering.accumulation(w)
+    out = rendering.composite_background(rendering.accumulate(w, torch.ones(1, 1, 3)), acc, torch.zeros(3))
+    assert torch.allclose(out, torch.full((1, 3), 1 - math.exp(-1.0)))
+
+
+@pytest.mark.parametrize("sigma_value", [0.0, 1e-8, 1e6, 1e12])
+@pytest.mark.parametrize("delta_value", [1e-9, 1e3])
+def test_extreme_sigma_and_delta_keep_outputs_and_gradients_finite(sigma_value, delta_value):
+    sigma = torch.full((3, 8), sigma_value, requires_grad=True)
+    delta = torch.full((3, 8), delta_value)
+    values = torch.rand(3, 8, 4, requires_grad=True)
+    w = rendering.render_weights(sigma, delta)
+    out = rendering.accumulate(w, values).sum() + rendering.expected_depth(w, torch.rand(3, 8)).sum()
+    out.backward()
+    assert torch.isfinite(w).all() and torch.isfinite(out)
+    assert torch.isfinite(sigma.grad).all() and torch.isfinite(values.grad).all()
+    total = w.sum(-1)
+    assert (total <= 1 + 1e-6).all() and (w >= 0).all()
+    expected_total = 1 - math.exp(-min(sigma_value * delta_value * 8, 80.0))
+    assert torch.allclose(total, torch.full_like(total, expected_total), atol=1e-5)
+
+
+def test_empty_rays_render_nothing():
+    sigma = torch.zeros(4, 0, requires_grad=True)
+    w = rendering.render_weights(sigma, torch.zeros(4, 0))
+    assert w.shape == (4, 0)
+    rgb = rendering.accumulate(w, torch.zeros(4, 0, 3))
+    assert torch.equal(rgb, torch.zeros(4, 3))
+    assert torch.equal(rendering.expected_depth(w, torch.zeros(4, 0)), torch.zeros(4))
+    rgb.sum().backward()  # a graph through zero samples must not fail
+
+
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
+def test_autocast_on_cpu_renders_in_float32(dtype):
+    sigma = torch.rand(16, 32, requires_grad=True) * 10
+    delta = torch.full((16, 32), 0.02)
+    layer = torch.nn.Linear(4, 3)
+    with torch.autocast("cpu", dtype=dtype):
+        colours = layer(torch.rand(16, 32, 4))
+        w = rendering.render_weights(sigma, delta)
+        rgb = rendering.accumulate(w, colours)
+    assert w.dtype == torch.float32 and rgb.dtype == torch.float32
+    rgb.square().sum().backward()
+    assert torch.isfinite(layer.weight.grad).all()
