@@ -63,12 +63,22 @@ def value_noise(points: np.ndarray, frequency: float, seed: int) -> np.ndarray:
     return out
 
 
-def fbm(points: np.ndarray, frequency: float, seed: int, octaves: int = 3) -> np.ndarray:
-    """Fractal noise: octaves of value noise, each twice the frequency and half the weight; in [0, 1]."""
+def fbm(points: np.ndarray, frequency: float, seed: int, octaves: int = 3, footprint=None) -> np.ndarray:
+    """Fractal noise: octaves of value noise, each twice the frequency and half the weight; in [0, 1].
+
+    `footprint` (N,) is the size of a pixel on the surface (metres). Octaves finer than about two
+    pixels fade to their mean, a cheap texture level of detail: without it the distant ground
+    would sparkle with aliasing that differs from view to view and misleads SIFT matching.
+    """
     total = np.zeros(len(points), np.float32)
     weight, norm = 1.0, 0.0
     for k in range(octaves):
-        total += weight * value_noise(points, frequency * 2.0**k, seed + 101 * k)
+        freq = frequency * 2.0**k
+        octave = value_noise(points, freq, seed + 101 * k)
+        if footprint is not None:
+            fade = np.clip((0.5 - freq * footprint) / 0.25, 0.0, 1.0).astype(np.float32)
+            octave = 0.5 + fade * (octave - 0.5)
+        total += weight * octave
         norm += weight
         weight *= 0.5
     return total / norm
@@ -82,37 +92,64 @@ def _mix(a, b, t):
     return (1.0 - t) * np.asarray(a, np.float32) + t * np.asarray(b, np.float32)
 
 
-def ground_albedo(x: np.ndarray, seed: int) -> np.ndarray:
-    """Grass with bare-soil patches; fine speckle for texture."""
+def spots(x: np.ndarray, frequency: float, seed: int, coverage: float, footprint=None) -> np.ndarray:
+    """Sharp-edged blobs (about 1 / (2 frequency) metres across) covering roughly `coverage` of the surface.
+
+    Thresholded value noise: crisp, scale-distinct blobs are what SIFT detects and matches best.
+    They fade out once smaller than about two pixels, like the fine noise octaves.
+    """
+    noise = value_noise(x, frequency, seed)
+    threshold = 1.0 - 0.6 * coverage ** 0.5  # value noise piles up around 0.5: a rough inverse CDF
+    mask = np.clip((noise - threshold) / 0.03, 0.0, 1.0)
+    if footprint is not None:
+        mask *= np.clip((0.25 - frequency * footprint) / 0.1, 0.0, 1.0)
+    return mask.astype(np.float32)
+
+
+# (frequency per metre, colour): clover and daisies, dry leaves, clods and pebbles
+GROUND_SPOTS = [
+    (2.5, [0.55, 0.62, 0.25]), (4.0, [0.12, 0.09, 0.05]), (7.0, [0.80, 0.74, 0.45]),
+    (12.0, [0.07, 0.05, 0.03]), (20.0, [0.9, 0.88, 0.8]), (33.0, [0.10, 0.12, 0.04]),
+]
+
+
+def ground_albedo(x: np.ndarray, seed: int, footprint=None) -> np.ndarray:
+    """Grass with bare-soil patches, fine speckle, pale flowers and dark clods."""
     patches = np.clip((fbm(x, 0.6, seed + 1) - 0.42) * 4.0, 0.0, 1.0)
     grass = _mix([0.20, 0.36, 0.10], [0.36, 0.46, 0.16], fbm(x, 3.0, seed + 2))
     soil = _mix([0.30, 0.22, 0.14], [0.48, 0.38, 0.26], fbm(x, 4.0, seed + 3))
     albedo = _mix(grass, soil, patches)
-    detail = fbm(x, 22.0, seed + 4, octaves=3)
-    return albedo * (0.55 + 0.9 * detail)[:, None]
+    detail = fbm(x, 10.0, seed + 4, octaves=4, footprint=footprint)
+    albedo = albedo * (0.4 + 1.2 * detail)[:, None]
+    # blobs at several scales, so every distance from the cameras has features SIFT can match
+    for k, (frequency, colour) in enumerate(GROUND_SPOTS):
+        albedo = _mix(albedo, colour, spots(x, frequency, seed + 5 + k, 0.05, footprint))
+    return albedo
 
 
-def branch_albedo(x: np.ndarray, seed: int) -> np.ndarray:
-    """Grey-brown bark with fine, high-contrast cracks."""
+def branch_albedo(x: np.ndarray, seed: int, footprint=None) -> np.ndarray:
+    """Grey-brown bark with fine, high-contrast cracks, pale lichen and dark knots."""
     base = _mix([0.22, 0.15, 0.09], [0.42, 0.33, 0.24], fbm(x, 6.0, seed + 11, octaves=2))
-    detail = fbm(x, 70.0, seed + 12, octaves=2)
-    return base * (0.5 + 1.0 * detail)[:, None]
+    detail = fbm(x, 25.0, seed + 12, octaves=3, footprint=footprint)
+    albedo = base * (0.4 + 1.2 * detail)[:, None]
+    albedo = _mix(albedo, [0.62, 0.66, 0.52], spots(x, 14.0, seed + 13, 0.12, footprint))
+    return _mix(albedo, [0.06, 0.04, 0.03], spots(x, 20.0, seed + 14, 0.08, footprint))
 
 
-def leaf_albedo(x: np.ndarray, tint: np.ndarray, seed: int) -> np.ndarray:
+def leaf_albedo(x: np.ndarray, tint: np.ndarray, seed: int, footprint=None) -> np.ndarray:
     """Green, varied per leaf (tint in [0, 1] from dark bluish to light yellowish), faint veins."""
     base = _mix([0.07, 0.25, 0.05], [0.32, 0.52, 0.12], tint)
-    detail = value_noise(x, 90.0, seed + 21)
+    detail = fbm(x, 40.0, seed + 21, octaves=2, footprint=footprint)
     return base * (0.7 + 0.6 * detail)[:, None]
 
 
-def apple_albedo(x: np.ndarray, ripeness: np.ndarray, centre: np.ndarray, seed: int) -> np.ndarray:
+def apple_albedo(x, ripeness, centre, seed: int, footprint=None) -> np.ndarray:
     """Red or yellow-green per apple, with streaks (noise stretched along the stalk axis) and dots."""
     local = (x - centre) * np.array([1.0, 1.0, 0.25], np.float32)  # streaks run top to bottom
-    streak = fbm(local + centre, 35.0, seed + 31, octaves=2)
+    streak = fbm(local + centre, 35.0, seed + 31, octaves=2, footprint=footprint)
     red = np.clip(ripeness + 0.8 * (streak - 0.5), 0.0, 1.0)
     albedo = _mix([0.62, 0.68, 0.18], [0.70, 0.07, 0.06], red)
-    dots = value_noise(x, 150.0, seed + 32)
+    dots = fbm(x, 150.0, seed + 32, octaves=1, footprint=footprint)
     return albedo * (0.8 + 0.4 * dots)[:, None]
 
 
@@ -185,7 +222,7 @@ class OrchardRenderer:
         idx = np.nonzero(valid)[0]
         if len(idx):
             rgb[idx] = self._shade(origins[idx], directions[idx], t[idx], gid[idx], pid[idx],
-                                   hit["primitive_normals"][idx])
+                                   hit["primitive_normals"][idx], float(intrinsics[0]))
         encoded = np.clip(rgb, 0.0, 1.0) ** (1.0 / 2.2)
         rgb8 = (encoded * 255.0 + 0.5).astype(np.uint8)
         return Render(rgb8.reshape(height, width, 3), label.reshape(height, width), depth.reshape(height, width))
@@ -194,9 +231,12 @@ class OrchardRenderer:
         elevation = np.clip(directions[:, 2], 0.0, 1.0) ** 0.6
         return _mix(SKY_HORIZON, SKY_ZENITH, elevation) ** 2.2  # stored linear, encoded later
 
-    def _shade(self, origins, directions, t, gid, pid, normals) -> np.ndarray:
+    def _shade(self, origins, directions, t, gid, pid, normals, focal: float) -> np.ndarray:
         points = (origins + t[:, None] * directions).astype(np.float32)
         normals = normals.astype(np.float32)
+        # pixel size on the surface; grazing views stretch it (geometric mean of the two axes)
+        cosine = np.abs(np.sum(normals * directions, -1))
+        footprint = (t / focal / np.sqrt(np.maximum(cosine, 0.05))).astype(np.float32)
         albedo = np.zeros_like(points)
         tree = self.tree
         for g, name in self.name_of_geometry.items():
@@ -205,15 +245,15 @@ class OrchardRenderer:
                 continue
             x = points[m]
             if name == "ground":
-                albedo[m] = ground_albedo(x, self.seed)
+                albedo[m] = ground_albedo(x, self.seed, footprint[m])
             elif name == "branch":
-                albedo[m] = branch_albedo(x, self.seed)
+                albedo[m] = branch_albedo(x, self.seed, footprint[m])
             elif name == "leaf":
-                albedo[m] = leaf_albedo(x, tree.leaf_tint[pid[m] // 2], self.seed)
+                albedo[m] = leaf_albedo(x, tree.leaf_tint[pid[m] // 2], self.seed, footprint[m])
             elif name == "apple":
                 k = pid[m] // tree.triangles_per_apple
                 centre = tree.apple_centres[k].astype(np.float32)
-                albedo[m] = apple_albedo(x, tree.apple_ripeness[k], centre, self.seed)
+                albedo[m] = apple_albedo(x, tree.apple_ripeness[k], centre, self.seed, footprint[m])
                 # the analytic sphere normal: smooth shading instead of facets
                 normals[m] = (x - centre) / tree.apple_radius
         # two-sided surfaces (leaves): shade the side facing the camera

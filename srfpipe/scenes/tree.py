@@ -21,6 +21,7 @@ LEAF_LENGTH = 0.075  # metres
 LEAF_WIDTH = 0.04
 LEAF_SCATTER = 0.09  # how far (metres) a leaf centre strays from its twig
 TUBE_SIDES = 8
+CANOPY_HALF_WIDTH = 0.5  # twig tips stay within this fraction of tree_height from the trunk axis
 SPHERE_RINGS = 8  # latitude bands of the apple and joint spheres
 SPHERE_SEGMENTS = 12
 
@@ -264,6 +265,12 @@ def _hang_apples(rng, segments, n_apples: int, depth: int, radius: float) -> np.
     return np.array(centres).reshape(-1, 3)
 
 
+def _ripeness(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Per apple: mostly red (about 0.75..1), a third yellow-green (0..0.3); streaks mix them on the skin."""
+    red = rng.random(n) < 0.65
+    return np.where(red, rng.uniform(0.75, 1.0, n), rng.uniform(0.0, 0.3, n))
+
+
 def build_tree(
     seed: int, n_apples: int, branch_depth: int, leaf_density: float, tree_height: float
 ) -> Tree:
@@ -275,6 +282,12 @@ def build_tree(
     scale = (tree_height - LEAF_SCATTER) / top
     for s in segments:
         s.start, s.end, s.radius = s.start * scale, s.end * scale, s.radius * scale
+    # keep the canopy within the camera rings' view: squeeze it horizontally if it spreads too far
+    reach = max(np.linalg.norm(s.end[:2]) for s in segments)
+    squeeze = min(1.0, CANOPY_HALF_WIDTH * tree_height / reach)
+    for s in segments:
+        s.start[:2] *= squeeze
+        s.end[:2] *= squeeze
     # the trunk base sinks a little into the ground so there is no visible gap at z = 0
     segments[0].start = segments[0].start - np.array([0.0, 0.0, 0.05])
 
@@ -302,7 +315,7 @@ def build_tree(
         ground=ground_plane(),
         apple_centres=apple_centres,
         apple_radius=APPLE_RADIUS,
-        apple_ripeness=rng.beta(2.0, 1.2, len(apple_centres)),
+        apple_ripeness=_ripeness(rng, len(apple_centres)),
         leaf_tint=rng.uniform(0.0, 1.0, len(leaf_centres)),
         triangles_per_apple=len(UNIT_SPHERE.triangles),
         info={
@@ -310,5 +323,6 @@ def build_tree(
             "n_leaves": int(len(leaf_centres)),
             "n_apples": int(len(apple_centres)),
             "skeleton_scale": float(scale),
+            "canopy_squeeze": float(squeeze),
         },
     )
