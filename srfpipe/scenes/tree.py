@@ -21,6 +21,8 @@ LEAF_LENGTH = 0.075  # metres
 LEAF_WIDTH = 0.04
 LEAF_SCATTER = 0.09  # how far (metres) a leaf centre strays from its twig
 TUBE_SIDES = 8
+TRUNK_RADIUS = 0.028  # trunk radius as a fraction of tree_height (7 cm for a 2.5 m tree)
+UNIT_TRUNK_RADIUS = 0.04  # in the unit skeleton, before scaling
 CANOPY_HALF_WIDTH = 0.5  # twig tips stay within this fraction of tree_height from the trunk axis
 SPHERE_RINGS = 8  # latitude bands of the apple and joint spheres
 SPHERE_SEGMENTS = 12
@@ -170,7 +172,7 @@ def grow_skeleton(rng: np.random.Generator, depth: int) -> list[Segment]:
     like the open vase shape of a pruned apple tree.
     """
     trunk_dir = _tilt(np.array([0.0, 0.0, 1.0]), rng.uniform(0.0, 0.08), rng.uniform(0, 2 * np.pi))
-    segments = [Segment(np.zeros(3), 0.36 * trunk_dir, 0.04, 0)]
+    segments = [Segment(np.zeros(3), 0.36 * trunk_dir, UNIT_TRUNK_RADIUS, 0)]
     frontier = [segments[0]]
     golden = np.pi * (3.0 - np.sqrt(5.0))
     for level in range(1, depth + 1):
@@ -281,7 +283,10 @@ def build_tree(
     top = max(s.end[2] for s in segments)
     scale = (tree_height - LEAF_SCATTER) / top
     for s in segments:
-        s.start, s.end, s.radius = s.start * scale, s.end * scale, s.radius * scale
+        # wood thickness follows the tree's size in metres, not the skeleton scale, so a shallow
+        # (branch_depth 1-2) tree is not stretched into a stump of logs
+        s.start, s.end = s.start * scale, s.end * scale
+        s.radius *= TRUNK_RADIUS * tree_height / UNIT_TRUNK_RADIUS
     # keep the canopy within the camera rings' view: squeeze it horizontally if it spreads too far
     reach = max(np.linalg.norm(s.end[:2]) for s in segments)
     squeeze = min(1.0, CANOPY_HALF_WIDTH * tree_height / reach)
