@@ -1,0 +1,126 @@
+"""Benchmark: the built-in segmenter's masks against ground truth on the demo orchard.
+
+Builds the demo orchard (seed 0, which the shipped model never saw) to labels.zarr through the
+Snakemake workflow and measures, per class, the IoU of the composited label image against
+`ground_truth/labels` of images.zarr (iou_<class>: one full-resolution sample per pixel, what
+images.zarr stores) and against the class covering most of each pixel's footprint
+(iou_<class>_area_majority), pooled over all frames. Writes
+benchmarks/results/masks.json with iou_apple, iou_branch, iou_leaf.
+
+    python benchmarks/masks.py            # the demo scene: 80 views, 640x480 -> 160x120
+    python benchmarks/masks.py --quick    # 16 views
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+REPO = Path(__file__).resolve().parent.parent
+CLASSES = {"apple": 1, "branch": 2, "leaf": 3}  # ground-truth label values
+
+
+def scene_config(views: int) -> dict:
+    demo = yaml.safe_load((REPO / "config" / "scenes" / "orchard.yaml").read_text())
+    demo.setdefault("orchard", {})["views"] = views
+    demo.setdefault("segmentation", {})["prompts"] = list(CLASSES)
+    return demo
+
+
+def build(workdir: Path, scene: dict) -> float:
+    (workdir / "config" / "scenes").mkdir(parents=True, exist_ok=True)
+    (workdir / "config" / "scenes" / "orchard.yaml").write_text(yaml.safe_dump(scene))
+    (workdir / "config" / "config.yaml").write_text(yaml.safe_dump(
+        {"scenes_dir": "config/scenes", "scenes": ["orchard"], "results_dir": "results", "final_artifact": "labels"}))
+    env = dict(os.environ, PATH=str(Path(sys.executable).parent) + os.pathsep + os.environ.get("PATH", ""))
+    started = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "-d", str(workdir),
+                    "--cores", "2", "results/orchard/labels.zarr"], check=True, env=env)
+    return time.perf_counter() - started
+
+
+def segment_seconds(workdir: Path) -> float:
+    """Wall time of the segment jobs, from Snakemake's benchmark files."""
+    total = 0.0
+    for path in (workdir / "benchmarks" / "runs" / "orchard").glob("segment_*.tsv"):
+        lines = path.read_text().splitlines()
+        total += float(lines[1].split("\t")[0])
+    return total
+
+
+def measure(workdir: Path) -> dict:
+    from srfpipe.artifacts import meta, open_artifact
+
+    from srfpipe.segment.train_builtin import area_majority_labels
+
+    root = workdir / "results" / "orchard"
+    truth = np.asarray(open_artifact(root / "images.zarr")["ground_truth/labels"][:])
+    majority = area_majority_labels(root / "images.zarr")
+    labels = open_artifact(root / "labels.zarr", stage="composite")
+    label = np.asarray(labels["label"][:])
+    values = meta(labels)["class_values"]
+    metrics = {}
+    for name, true_value in CLASSES.items():
+        pred = label == values.get(name, -1)
+        gt = truth == true_value
+        union = np.logical_or(pred, gt).sum()
+        metrics[f"iou_{name}"] = round(float(np.logical_and(pred, gt).sum() / union), 4) if union else 1.0
+        metrics[f"gt_fraction_{name}"] = round(float(gt.mean()), 5)
+        # against the class covering most of each pixel (see area_majority_labels)
+        gt = majority == true_value
+        union = np.logical_or(pred, gt).sum()
+        metrics[f"iou_{name}_area_majority"] = round(float(np.logical_and(pred, gt).sum() / union), 4) if union else 1.0
+    metrics["frames"] = int(label.shape[0])
+    metrics["resolution"] = [int(label.shape[2]), int(label.shape[1])]
+    return metrics
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="16 views instead of the demo's 80")
+    parser.add_argument("--workdir", type=Path, help="keep the Snakemake work directory here")
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "masks.json")
+    args = parser.parse_args(argv)
+
+    views = 16 if args.quick else 80
+    scene = scene_config(views)
+    with tempfile.TemporaryDirectory(prefix="srfpipe-masks-") as tmp:
+        workdir = (args.workdir or Path(tmp)).resolve()
+        seconds = build(workdir, scene)
+        metrics = measure(workdir)
+        metrics["segment_seconds"] = round(segment_seconds(workdir), 2)
+    model_card = json.loads((REPO / "srfpipe" / "models" / "orchard_segmenter.json").read_text())
+    result = {
+        **metrics,
+        "build_seconds": round(seconds, 1),
+        "targets": {"iou_apple": 0.85, "iou_branch": 0.6, "iou_leaf": 0.85},
+        "quick": args.quick,
+        "scene": scene,
+        "model": {"file": model_card["file"], "parameters": model_card["parameters"],
+                  "training_seeds": model_card["training"]["seeds"]},
+        "machine": {"platform": platform.platform(), "python": platform.python_version(),
+                    "cpus": os.cpu_count(), "processor": platform.processor()},
+    }
+    print(f"{'class':<8}{'IoU':>8}{'IoU (area majority)':>21}{'target':>8}")
+    for name in CLASSES:
+        print(f"{name:<8}{result['iou_' + name]:>8.3f}{result[f'iou_{name}_area_majority']:>21.3f}"
+              f"{result['targets']['iou_' + name]:>8.2f}")
+    print(f"{metrics['frames']} frames at {metrics['resolution'][0]}x{metrics['resolution'][1]}, "
+          f"segment jobs {metrics['segment_seconds']:.1f} s, build {seconds:.0f} s")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
