@@ -150,9 +150,53 @@ def test_cli_bad_option_gives_clear_error(tmp_path, capsys):
     out = tmp_path / "bad"
     assert main(["orchard", "--options", '{"views": 1}', "--out", str(out)]) == 1
     err = capsys.readouterr().err
-    assert "views" in err and "minimum" in err.lower() or "less than" in err
+    assert "orchard.views: 1 is less than the minimum of 2" in err
     assert main(["orchard", "--options", '{"n_trees": 3}', "--out", str(out)]) == 1
     assert "n_trees" in capsys.readouterr().err
     assert not out.exists()
     with pytest.raises(ValueError, match="n_apples"):
         generate_orchard(out, n_apples=-1)
+
+
+def test_class_colours_are_plausible(tiny):
+    """Apples red/yellow, leaves green, sky blue: what a colour-based segmenter would rely on."""
+    _, cap = tiny
+    rgb = np.concatenate([image[..., ::-1].reshape(-1, 3) for image in cap["images"]]).astype(float)
+    label = np.concatenate([label.ravel() for label in cap["labels"]])
+    sky = np.concatenate([depth.ravel() == 0 for depth in cap["depth"]])
+    apple, leaf, sky_rgb = rgb[label == 1].mean(0), rgb[label == 3].mean(0), rgb[sky].mean(0)
+    assert apple[0] > apple[2] + 40 and apple[0] > leaf[0] + 40
+    assert leaf[1] > leaf[0] and leaf[1] > leaf[2]
+    assert sky_rgb[2] > sky_rgb[0] + 30
+
+
+def test_views_on_rings_look_at_the_tree():
+    from srfpipe.scenes.orchard import look_at, ring_poses
+
+    target = np.array([0.0, 0.0, 1.4])
+    poses = ring_poses(7, [0.9, 2.2], 3.5, target, np.random.default_rng(0))
+    assert poses.shape == (7, 4, 4)
+    heights = poses[:, 2, 3]
+    assert np.sum(np.abs(heights - 0.9) < 0.15) == 4 and np.sum(np.abs(heights - 2.2) < 0.15) == 3
+    assert np.allclose(np.linalg.norm(poses[:, :2, 3], axis=1), 3.5, rtol=0.1)
+    for pose in poses:
+        assert np.allclose(pose[:3, :3] @ pose[:3, :3].T, np.eye(3), atol=1e-9)
+        assert np.linalg.det(pose[:3, :3]) > 0
+        to_target = (target - pose[:3, 3]) / np.linalg.norm(target - pose[:3, 3])
+        assert np.allclose(pose[:3, 2], to_target)  # OpenCV: +z forward
+        assert pose[2, 1] < 0  # OpenCV: +y down, so image rows run down the world z axis
+    with pytest.raises(ValueError, match="parallel"):
+        look_at([0, 0, 5], [0, 0, 0])
+
+
+def test_scene_without_apples_or_leaves(tmp_path):
+    import open3d as o3d
+
+    folder = generate_orchard(tmp_path / "bare", progress=False, views=2, width=32, height=24,
+                              n_apples=0, leaf_density=0)
+    assert json.loads((folder / "ground_truth" / "apples.json").read_text()) == []
+    for name in ("apple", "leaf"):
+        mesh = o3d.io.read_triangle_mesh(str(folder / "ground_truth" / "meshes" / f"{name}.ply"))
+        assert len(mesh.triangles) == 0
+    labels = cv2.imread(str(folder / "ground_truth" / "labels" / "frame_00000.png"), cv2.IMREAD_UNCHANGED)
+    assert set(np.unique(labels).tolist()) <= {0, 2}

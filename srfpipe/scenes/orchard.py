@@ -96,9 +96,20 @@ def sun_direction(rng: np.random.Generator) -> np.ndarray:
 # ----------------------------------------------------------------------------- output
 
 
+EMPTY_PLY = (
+    "ply\nformat ascii 1.0\ncomment srfpipe orchard: no geometry of this class\n"
+    "element vertex 0\nproperty float x\nproperty float y\nproperty float z\n"
+    "element face 0\nproperty list uchar int vertex_indices\nend_header\n"
+)
+
+
 def _write_mesh(path: Path, mesh) -> None:
     import open3d as o3d
 
+    if len(mesh.triangles) == 0:
+        # open3d refuses to write an empty mesh, but n_apples=0 or leaf_density=0 are valid scenes
+        path.write_text(EMPTY_PLY)
+        return
     legacy = o3d.geometry.TriangleMesh(
         o3d.utility.Vector3dVector(mesh.vertices.astype(np.float64)),
         o3d.utility.Vector3iVector(mesh.triangles.astype(np.int32)),
