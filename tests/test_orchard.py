@@ -200,3 +200,18 @@ def test_scene_without_apples_or_leaves(tmp_path):
         assert len(mesh.triangles) == 0
     labels = cv2.imread(str(folder / "ground_truth" / "labels" / "frame_00000.png"), cv2.IMREAD_UNCHANGED)
     assert set(np.unique(labels).tolist()) <= {0, 2}
+
+
+def test_chunked_rendering_matches_whole_image(monkeypatch):
+    from srfpipe.scenes import raycast
+    from srfpipe.scenes.orchard import intrinsics_for, look_at, sun_direction
+    from srfpipe.scenes.tree import build_tree
+
+    renderer = raycast.OrchardRenderer(build_tree(1, 6, 3, 1.0, 2.5), 1, sun_direction(np.random.default_rng(1)))
+    pose = look_at([3.0, -1.5, 1.5], [0.0, 0.0, 1.3])
+    whole = renderer.render(pose, intrinsics_for(48, 36, 60), 48, 36)
+    monkeypatch.setattr(raycast, "RAYS_PER_CHUNK", 777)
+    chunked = renderer.render(pose, intrinsics_for(48, 36, 60), 48, 36)
+    for a, b in zip((whole.rgb, whole.label, whole.depth), (chunked.rgb, chunked.label, chunked.depth)):
+        np.testing.assert_array_equal(a, b)
+    assert set(np.unique(whole.label).tolist()) >= {0, 2, 3}

@@ -36,7 +36,7 @@ log = logging.getLogger(__name__)
 
 CLASSES = ["background", "apple", "branch", "leaf"]
 BOUNDS_MARGIN = 0.1  # metres around the tree's mesh in bounds_world
-SUN_ELEVATION_DEG = 55.0
+SUN_ELEVATION_DEG = (40.0, 65.0)  # range over seeds
 
 
 # ----------------------------------------------------------------------------- cameras
@@ -88,8 +88,9 @@ def intrinsics_for(width: int, height: int, fov_deg: float) -> np.ndarray:
 
 
 def sun_direction(rng: np.random.Generator) -> np.ndarray:
+    """Unit vector toward the sun: any azimuth, a mid-day elevation (varies by seed, for training variety)."""
     azimuth = rng.uniform(0, 2 * np.pi)
-    elevation = np.radians(SUN_ELEVATION_DEG)
+    elevation = np.radians(rng.uniform(*SUN_ELEVATION_DEG))
     return np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)])
 
 

@@ -23,6 +23,7 @@ SKY_ZENITH = np.array([0.32, 0.52, 0.86])
 SKY_HORIZON = np.array([0.80, 0.87, 0.95])
 AMBIENT = 0.38
 SUN = 0.85
+RAYS_PER_CHUNK = 1 << 19
 SHADOW_BIAS = 2e-3  # metres: start shadow rays just off the surface to avoid self-hits
 
 
@@ -204,6 +205,19 @@ class OrchardRenderer:
         origins, directions = pixel_rays(camera_to_world, intrinsics, width, height)
         origins = origins.reshape(-1, 3)
         directions = directions.reshape(-1, 3)
+        forward = np.asarray(camera_to_world, np.float64)[:3, 2]
+        rgb = np.empty((len(origins), 3), np.uint8)
+        label = np.empty(len(origins), np.uint8)
+        depth = np.empty(len(origins), np.float32)
+        # chunks bound the memory of the shading temporaries for large images
+        for lo in range(0, len(origins), RAYS_PER_CHUNK):
+            sl = slice(lo, lo + RAYS_PER_CHUNK)
+            rgb[sl], label[sl], depth[sl] = self._render_rays(origins[sl], directions[sl], forward,
+                                                              float(intrinsics[0]))
+        return Render(rgb.reshape(height, width, 3), label.reshape(height, width), depth.reshape(height, width))
+
+    def _render_rays(self, origins, directions, forward, focal: float):
+        """Colour (uint8), class label and z-depth of unit-direction rays from one camera."""
         hit = self._cast(origins, directions)
         t = hit["t_hit"]
         gid = hit["geometry_ids"].astype(np.int64)
@@ -214,7 +228,6 @@ class OrchardRenderer:
         for g, cls in self.class_of_geometry.items():
             label[gid == g] = cls
         # z-depth: distance along the ray times the cosine to the optical axis
-        forward = np.asarray(camera_to_world, np.float64)[:3, 2]
         depth = np.where(valid, t * (directions @ forward), 0.0).astype(np.float32)
 
         rgb = np.empty((len(t), 3), np.float32)
@@ -222,10 +235,9 @@ class OrchardRenderer:
         idx = np.nonzero(valid)[0]
         if len(idx):
             rgb[idx] = self._shade(origins[idx], directions[idx], t[idx], gid[idx], pid[idx],
-                                   hit["primitive_normals"][idx], float(intrinsics[0]))
+                                   hit["primitive_normals"][idx], focal)
         encoded = np.clip(rgb, 0.0, 1.0) ** (1.0 / 2.2)
-        rgb8 = (encoded * 255.0 + 0.5).astype(np.uint8)
-        return Render(rgb8.reshape(height, width, 3), label.reshape(height, width), depth.reshape(height, width))
+        return (encoded * 255.0 + 0.5).astype(np.uint8), label, depth
 
     def _sky(self, directions: np.ndarray) -> np.ndarray:
         elevation = np.clip(directions[:, 2], 0.0, 1.0) ** 0.6
