@@ -23,6 +23,8 @@ LEAF_SCATTER = 0.09  # how far (metres) a leaf centre strays from its twig
 TUBE_SIDES = 8
 TRUNK_RADIUS = 0.028  # trunk radius as a fraction of tree_height (7 cm for a 2.5 m tree)
 UNIT_TRUNK_RADIUS = 0.04  # in the unit skeleton, before scaling
+UNIT_TRUNK_LENGTH = 0.36
+SCAFFOLD_LENGTH = 0.42  # first-level branches, unit skeleton
 CANOPY_HALF_WIDTH = 0.5  # twig tips stay within this fraction of tree_height from the trunk axis
 SPHERE_RINGS = 8  # latitude bands of the apple and joint spheres
 SPHERE_SEGMENTS = 12
@@ -172,7 +174,7 @@ def grow_skeleton(rng: np.random.Generator, depth: int) -> list[Segment]:
     like the open vase shape of a pruned apple tree.
     """
     trunk_dir = _tilt(np.array([0.0, 0.0, 1.0]), rng.uniform(0.0, 0.08), rng.uniform(0, 2 * np.pi))
-    segments = [Segment(np.zeros(3), 0.36 * trunk_dir, UNIT_TRUNK_RADIUS, 0)]
+    segments = [Segment(np.zeros(3), UNIT_TRUNK_LENGTH * trunk_dir, UNIT_TRUNK_RADIUS, 0)]
     frontier = [segments[0]]
     golden = np.pi * (3.0 - np.sqrt(5.0))
     for level in range(1, depth + 1):
@@ -187,14 +189,15 @@ def grow_skeleton(rng: np.random.Generator, depth: int) -> list[Segment]:
                 # the last child continues from the tip; the others sprout along the parent
                 at = 1.0 if k == n_children - 1 else rng.uniform(0.55, 0.95)
                 start = parent.start + at * axis
-                angle = rng.uniform(0.6, 1.05) if level > 1 or k < n_children - 1 else rng.uniform(0.7, 1.0)
-                child_dir = _tilt(direction, angle, azimuth0 + k * golden * 2.0 + rng.normal(0, 0.2))
+                child_dir = _tilt(direction, rng.uniform(0.6, 1.05), azimuth0 + 2 * k * golden + rng.normal(0, 0.2))
                 child_dir = child_dir + np.array([0.0, 0.0, 0.25])  # phototropism
                 child_dir /= np.linalg.norm(child_dir)
-                child_len = (0.55 if level == 1 else 0.72) * length * rng.uniform(0.8, 1.1)
-                if level == 1:
-                    child_len = 0.42 * rng.uniform(0.85, 1.1)
-                radius = parent.radius * (0.6 if level > 1 else 0.55)
+                if level == 1:  # scaffold branches: a fixed share of the unit tree, whatever the trunk
+                    child_len = SCAFFOLD_LENGTH * rng.uniform(0.85, 1.1)
+                    radius = parent.radius * 0.55
+                else:
+                    child_len = 0.72 * length * rng.uniform(0.8, 1.1)
+                    radius = parent.radius * 0.6
                 child = Segment(start, start + child_len * child_dir, radius, level)
                 segments.append(child)
                 next_frontier.append(child)
