@@ -217,7 +217,8 @@ class OccupancyGrid(nn.Module):
                     pick = torch.randint(0, occupied_cells.numel(), (n // 4,), generator=generator,
                                          device=occ.device)
                     occupied_cells = occupied_cells[pick]
-                cells = torch.cat([random_cells, occupied_cells])
+                # unique: index_put_ with repeated indices would keep an arbitrary one of them
+                cells = torch.unique(torch.cat([random_cells, occupied_cells]))
             values = torch.empty(cells.shape[0], device=occ.device)
             for start in range(0, cells.shape[0], chunk):
                 points = self._cell_points(level, cells[start:start + chunk], generator)

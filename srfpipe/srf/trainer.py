@@ -235,10 +235,12 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
     eval_curve = {k: [] for k in ("step", "seconds", "psnr", "miou", "miou_gt")}
     start_step, train_seconds = 0, 0.0
     state = latest_checkpoint(ckpt_dir, fp)
+    resumed_from = 0
     if state is not None:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         start_step, train_seconds = int(state["step"]), float(state["train_seconds"])
+        resumed_from = start_step
         curve = {k: list(v) for k, v in state["curve"].items()}
         eval_curve = {k: list(v) for k, v in state["eval_curve"].items()}
         log.info("resuming from %s at step %d", ckpt_dir, start_step)
@@ -324,7 +326,7 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
         classes=data.classes, scene_from_world=data.scene_from_world, world_from_scene=data.world_from_scene,
         bounds_world=data.bounds_world, scene_scale=scale, holdout_every=holdout_every,
         train_views=train_views, heldout_views=heldout_views, train_seconds=train_seconds,
-        precision=precision, device=str(device), fingerprint=fp,
+        precision=precision, device=str(device), fingerprint=fp, resumed_from_step=resumed_from,
         final=({k: curve[k][-1] for k in curve} if curve["step"] else {}),
     )
     if not options.get("keep_checkpoints", False) and ckpt_dir.is_dir():

@@ -1,0 +1,149 @@
+"""Trainer, srf.zarr, query API and evaluation on a tiny analytic scene (quick settings)."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from srfpipe.config import section_defaults
+from srfpipe.srf.data import split_views
+from srfpipe.srf.io import read_curve, read_srf
+from srfpipe.srf.query import SemanticRadianceField
+from srfpipe.srf.synthetic import write_scene
+from srfpipe.srf.trainer import train
+
+
+def tiny_options(**overrides):
+    options = section_defaults("train")
+    options.update(iterations=30, rays_per_batch=256, default_cells=20, outer_resolution=12, hidden=32,
+                   outer_samples=16, before_samples=8, checkpoint_every=10, log_every=5,
+                   occupancy_update_every=8, occupancy_warmup=16)
+    options.update(overrides)
+    return options
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("scene")
+    images, labels = write_scene(folder, views=10, width=32, height=24)
+    return folder, images, labels
+
+
+@pytest.fixture(scope="module")
+def trained(scene):
+    folder, images, labels = scene
+    out = folder / "srf.zarr"
+    train(images, labels, out, tiny_options(iterations=60, eval_every=30), holdout_every=5)
+    return out
+
+
+def test_split_holds_out_every_kth_view_and_rejects_bad_values():
+    train_views, held = split_views(10, 4)
+    assert held.tolist() == [0, 4, 8] and sorted(train_views.tolist() + held.tolist()) == list(range(10))
+    with pytest.raises(ValueError, match="holdout_every"):
+        split_views(10, 1)
+
+
+def test_overfitting_one_tiny_image_raises_psnr(tmp_path):
+    images, labels = write_scene(tmp_path, views=2, width=16, height=12)
+    out = tmp_path / "srf.zarr"
+    # two views, view 0 held out: every step trains on the same 192 pixels
+    train(images, labels, out, tiny_options(iterations=150, rays_per_batch=192, lr_final=0.005,
+                                            checkpoint_every=0), holdout_every=2)
+    curve = read_curve(out)
+    start, end = curve["psnr"][:2].mean(), curve["psnr"][-3:].mean()
+    assert end > start + 8.0, (start, end)
+    assert end > 24.0
+
+
+def test_resumed_run_ends_with_the_same_weights(scene, tmp_path):
+    _, images, labels = scene
+    options = tiny_options(iterations=24, checkpoint_every=8, keep_checkpoints=True)
+    full = tmp_path / "full.zarr"
+    train(images, labels, full, options, holdout_every=5, checkpoints=tmp_path / "ckpt_full")
+
+    # a run killed after step 16 leaves checkpoints 8 and 16 behind (the output never appears);
+    # a first run with kept checkpoints produces exactly that folder
+    interrupted = tmp_path / "resumed.zarr"
+    ckpt = tmp_path / "ckpt_resumed"
+    train(images, labels, tmp_path / "partial.zarr", options, holdout_every=5, checkpoints=ckpt)
+    assert [p.name for p in sorted(ckpt.glob("step-*.pt"))] == ["step-000000008.pt", "step-000000016.pt"]
+    train(images, labels, interrupted, options, holdout_every=5, checkpoints=ckpt)
+    assert read_srf(interrupted)[1]["resumed_from_step"] == 16
+
+    a, _ = read_srf(full)
+    b, _ = read_srf(interrupted)
+    sa, sb = a.state_dict(), b.state_dict()
+    assert sa.keys() == sb.keys()
+    for key in sa:
+        assert torch.equal(sa[key], sb[key]), key
+
+
+def test_checkpoint_from_other_settings_is_not_resumed(scene, tmp_path):
+    _, images, labels = scene
+    ckpt = tmp_path / "ckpt"
+    train(images, labels, tmp_path / "a.zarr", tiny_options(iterations=10, checkpoint_every=5,
+                                                            keep_checkpoints=True),
+          holdout_every=5, checkpoints=ckpt)
+    train(images, labels, tmp_path / "b.zarr", tiny_options(iterations=10, seed=1, checkpoint_every=5),
+          holdout_every=5, checkpoints=ckpt)
+    assert read_srf(tmp_path / "b.zarr")[1]["resumed_from_step"] == 0
+
+
+def test_srf_zarr_round_trip_and_query_api(trained):
+    srf = SemanticRadianceField.load(trained, device="cpu")
+    assert srf.classes == ["apple", "branch", "leaf"]
+    assert srf.scene_from_world.shape == (4, 4) and srf.bounds_world.shape == (2, 3)
+    curve = read_curve(trained)
+    assert len(curve["step"]) > 0 and np.all(np.isfinite(curve["loss"]))
+    from srfpipe.srf.synthetic import look_at
+
+    pose = look_at((2.0, 0.5, 0.8), (0.0, 0.0, 0.35))
+    out = srf.render(pose, [30.0, 30.0, 16.0, 12.0], 32, 24)
+    assert out["rgb"].shape == (24, 32, 3) and out["rgb"].dtype == np.float32
+    assert out["semantic"].shape == (24, 32, 3)
+    assert out["depth"].shape == (24, 32) and out["accumulation"].shape == (24, 32)
+    assert 0 <= out["rgb"].min() and out["rgb"].max() <= 1
+    points = np.random.default_rng(0).uniform(-0.5, 0.5, (1000, 3)) + [0, 0, 0.5]
+    p = srf.semantic(points)
+    assert p.shape == (1000, 3) and np.all((p >= 0) & (p <= 1))
+    sigma = srf.density(np.vstack([points, [[50.0, 0.0, 0.0]]]))
+    assert sigma.shape == (1001,) and np.all(sigma >= 0) and sigma[-1] == 0.0
+    with pytest.raises(ValueError, match="NaN"):
+        srf.density(np.array([[0.0, np.nan, 0.0]]))
+    with pytest.raises(ValueError, match=r"\(M, 3\)"):
+        srf.semantic(np.zeros((3, 2)))
+
+
+def test_density_is_per_world_unit(trained):
+    srf = SemanticRadianceField.load(trained, device="cpu")
+    points = np.random.default_rng(1).uniform(-0.4, 0.4, (200, 3)) + [0, 0, 0.45]  # inside the bounds
+    x = torch.as_tensor(points @ srf.scene_from_world[:3, :3].T + srf.scene_from_world[:3, 3]).float()
+    with torch.no_grad():
+        scene_sigma = srf.model.field.density(x)[0].numpy()
+    assert np.allclose(srf.density(points), scene_sigma * srf.scale, rtol=1e-5)
+
+
+def test_evaluate_writes_metrics_and_renders(scene, trained, tmp_path):
+    from srfpipe.evaluate import evaluate
+
+    _, images, labels = scene
+    out = tmp_path / "eval"
+    metrics = evaluate(images, labels, trained, out, {"holdout_every": 5}, device="cpu")
+    saved = json.loads((out / "metrics.json").read_text())
+    for key in ("psnr", "psnr_object", "ssim", "miou", "miou_gt", "iou", "iou_gt"):
+        assert key in saved
+    assert saved["views"] == 2 and 0 <= saved["miou"] <= 1 and -1 <= saved["ssim"] <= 1
+    assert metrics["psnr"] == pytest.approx(saved["psnr"])
+    assert sorted(p.name for p in (out / "renders").glob("*.png")) == ["frame_00000.png", "frame_00005.png"]
+    with pytest.raises(ValueError, match="holdout_every"):
+        evaluate(images, labels, trained, tmp_path / "eval2", {"holdout_every": 3}, device="cpu")
+
+
+def test_bad_inputs_name_the_file(scene, tmp_path):
+    _, images, _ = scene
+    from srfpipe.artifacts import ArtifactError
+
+    with pytest.raises(ArtifactError, match="missing.zarr"):
+        train(images, tmp_path / "missing.zarr", tmp_path / "x.zarr", tiny_options(), holdout_every=5)
