@@ -36,4 +36,4 @@ rule poses:
         runtime=120,
     shell:
         "srfpipe poses --source {params.source:q} --capture {input.capture} "
-        "--options {params.options:q} --out {output} > {log} 2>&1"
+        "--options {params.options:q} --threads {threads} --out {output} > {log} 2>&1"

@@ -1,0 +1,299 @@
+"""Refine imported camera poses with COLMAP (pycolmap): SIFT, matching, triangulation, bundle adjustment.
+
+The poses are taken as given (a COLMAP reconstruction is built from them, with the capture's
+intrinsics held fixed), so this is "point triangulator + bundle adjuster", not SfM from scratch:
+
+1. SIFT features for every image (`pycolmap.extract_features`) into a temporary database that
+   already holds our cameras, rigs, frames and images with the reconstruction's ids.
+2. Matching: exhaustive for small captures, otherwise spatial (nearest camera centres, from the
+   known poses written as pose priors) or sequential (neighbours in capture order).
+3. Triangulation from the given poses (`pycolmap.triangulate_points`). Thresholds are loose in
+   the first pass, because the given poses may be off by a degree or more.
+4. Bundle adjustment of poses and points (robust Cauchy loss, intrinsics fixed), outlier
+   filtering, a second triangulation with COLMAP's default thresholds from the refined poses, and
+   a final bundle adjustment.
+5. Bundle adjustment leaves the gauge (scale, rotation, position of the world) free, so the result
+   is mapped back by the similarity that best aligns the refined camera centres to the given ones:
+   the world frame (and its units) of the capture is kept.
+
+Reprojection errors (pixels) after step 3 ("before", poses as given) and after step 4 ("after")
+are reported in `stats`, with the numbers of points and observations.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from srfpipe import cameras
+
+log = logging.getLogger(__name__)
+
+EXHAUSTIVE_MAX_IMAGES = 60  # 'auto' matcher: all pairs up to this many images (~1.8k pairs)
+SPATIAL_NEIGHBOURS = 20
+SEQUENTIAL_OVERLAP = 15
+LOOSE_ANGLE_DEG = 8.0  # first triangulation: the given poses may be this far off
+LOOSE_REPROJ_PX = 24.0
+FILTER_REPROJ_PX = 4.0  # COLMAP's default outlier threshold
+FILTER_MIN_TRI_ANGLE_DEG = 1.5
+MIN_OBSERVATIONS = 20  # fewer observed points than this: the image keeps its given pose
+
+
+@dataclass
+class RefinementResult:
+    camera_to_world: np.ndarray  # (N, 4, 4) refined, in the input's world frame
+    points_world: np.ndarray  # (M, 3) triangulated points, same frame
+    stats: dict
+
+
+def choose_matcher(matcher: str, n_images: int) -> str:
+    """'auto' -> exhaustive for small captures, spatial (the poses are known) otherwise."""
+    if matcher != "auto":
+        return matcher
+    return "exhaustive" if n_images <= EXHAUSTIVE_MAX_IMAGES else "spatial"
+
+
+def _camera_model(intrinsics, distortion, size):
+    """pycolmap camera: PINHOLE, or OPENCV when there is distortion (COLMAP pixels also centre at +0.5)."""
+    import pycolmap
+
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    width, height = (int(v) for v in size)
+    if np.any(np.asarray(distortion) != 0):
+        camera = pycolmap.Camera.create_from_model_name(0, "OPENCV", fx, width, height)
+        camera.params = [fx, fy, cx, cy, *(float(v) for v in distortion)]
+    else:
+        camera = pycolmap.Camera.create_from_model_name(0, "PINHOLE", fx, width, height)
+        camera.params = [fx, fy, cx, cy]
+    return camera
+
+
+def build_reconstruction(image_paths, camera_to_world, intrinsics, image_size, distortion):
+    """A posed pycolmap.Reconstruction (no points): one camera per distinct calibration, image i has id i+1."""
+    import pycolmap
+
+    reconstruction = pycolmap.Reconstruction()
+    camera_ids: dict[tuple, int] = {}
+    for index, (name, pose) in enumerate(zip(image_paths, camera_to_world)):
+        key = (*np.round(intrinsics[index], 9), *np.round(distortion[index], 12), *image_size[index])
+        if key not in camera_ids:
+            camera = _camera_model(intrinsics[index], distortion[index], image_size[index])
+            camera.camera_id = len(camera_ids) + 1
+            reconstruction.add_camera_with_trivial_rig(camera)
+            camera_ids[key] = camera.camera_id
+        world_to_camera = np.linalg.inv(pose)
+        cam_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(world_to_camera[:3, :3]), world_to_camera[:3, 3])
+        image = pycolmap.Image(name=name, camera_id=camera_ids[key], image_id=index + 1)
+        reconstruction.add_image_with_trivial_frame(image, cam_from_world)
+    return reconstruction
+
+
+def _write_database(database_path: Path, reconstruction, with_pose_priors: bool) -> None:
+    """Cameras, rigs, frames and images into a new database, keeping the reconstruction's ids,
+    so that feature extraction attaches its keypoints to exactly these images."""
+    import pycolmap
+
+    database = pycolmap.Database.open(str(database_path))
+    try:
+        for camera in reconstruction.cameras.values():
+            database.write_camera(camera, use_camera_id=True)
+        for rig in reconstruction.rigs.values():
+            database.write_rig(rig, use_rig_id=True)
+        for frame in reconstruction.frames.values():
+            database.write_frame(frame, use_frame_id=True)
+        for image in reconstruction.images.values():
+            database.write_image(image, use_image_id=True)
+            if with_pose_priors:  # spatial matching reads camera positions from pose priors
+                prior = pycolmap.PosePrior(
+                    position=image.projection_center(),
+                    coordinate_system=pycolmap.PosePriorCoordinateSystem.CARTESIAN,
+                )
+                prior.corr_data_id = image.data_id
+                database.write_pose_prior(prior)
+    finally:
+        database.close()
+
+
+def _match(database_path: Path, matcher: str, n_images: int, scene_size: float, threads: int) -> None:
+    import pycolmap
+
+    options = pycolmap.FeatureMatchingOptions()
+    options.num_threads = threads
+    device = pycolmap.Device.cpu
+    if matcher == "exhaustive":
+        pycolmap.match_exhaustive(str(database_path), matching_options=options, device=device)
+    elif matcher == "sequential":
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = min(SEQUENTIAL_OVERLAP, n_images - 1)
+        pycolmap.match_sequential(str(database_path), matching_options=options, pairing_options=pairing, device=device)
+    elif matcher == "spatial":
+        pairing = pycolmap.SpatialPairingOptions()
+        pairing.ignore_z = False  # positions are 3D camera centres, not GPS
+        pairing.max_num_neighbors = min(SPATIAL_NEIGHBOURS, n_images - 1)
+        pairing.max_distance = 10.0 * scene_size
+        pycolmap.match_spatial(str(database_path), matching_options=options, pairing_options=pairing, device=device)
+    else:
+        raise ValueError(f"poses.matcher: unknown matcher {matcher!r}")
+
+
+def _triangulation_options(threads: int, loose: bool):
+    import pycolmap
+
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = threads
+    options.ba_global_max_refinements = 1
+    options.extract_colors = False
+    if loose:
+        tri = options.triangulation
+        tri.create_max_angle_error = LOOSE_ANGLE_DEG
+        tri.continue_max_angle_error = LOOSE_ANGLE_DEG
+        tri.re_max_angle_error = LOOSE_ANGLE_DEG
+        tri.merge_max_reproj_error = LOOSE_REPROJ_PX
+        tri.complete_max_reproj_error = LOOSE_REPROJ_PX
+        options.mapper.filter_max_reproj_error = LOOSE_REPROJ_PX
+    return options
+
+
+def _bundle_adjust(reconstruction, threads: int) -> None:
+    import pycolmap
+
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_focal_length = False  # the capture's calibration is trusted
+    options.refine_principal_point = False
+    options.refine_extra_params = False
+    options.refine_sensor_from_rig = False
+    options.print_summary = False
+    options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    options.ceres.loss_function_scale = 2.0  # pixels: matches off by more count less
+    options.ceres.solver_options.num_threads = threads
+    options.ceres.solver_options.max_num_iterations = 100
+    pycolmap.bundle_adjustment(reconstruction, options)
+
+
+def _filter_outliers(reconstruction) -> int:
+    import pycolmap
+
+    manager = pycolmap.ObservationManager(reconstruction)
+    return int(manager.filter_all_points3D(FILTER_REPROJ_PX, FILTER_MIN_TRI_ANGLE_DEG))
+
+
+def _poses_in_order(reconstruction, n_images: int) -> np.ndarray:
+    poses = np.empty((n_images, 4, 4))
+    for index in range(n_images):
+        cam_from_world = reconstruction.images[index + 1].cam_from_world().matrix()
+        poses[index] = np.linalg.inv(np.vstack([cam_from_world, [0.0, 0.0, 0.0, 1.0]]))
+    return poses
+
+
+def _points(reconstruction) -> np.ndarray:
+    return np.array([p.xyz for p in reconstruction.points3D.values()], dtype=np.float64).reshape(-1, 3)
+
+
+def _summary(reconstruction) -> dict:
+    return {
+        "reprojection_error_px": float(reconstruction.compute_mean_reprojection_error()),
+        "num_points3D": int(reconstruction.num_points3D()),
+        "num_observations": int(reconstruction.compute_num_observations()),
+    }
+
+
+def refine_poses(capture, camera_to_world: np.ndarray, matcher: str = "auto",
+                 workdir_parent: str | Path | None = None, threads: int = -1,
+                 max_features: int = 8192) -> RefinementResult:
+    """Refine `camera_to_world` (N, 4, 4) for the images of `capture` (a `srfpipe.poses.Capture`).
+
+    Intermediate files (database, models) go to a temporary folder under `workdir_parent`.
+    """
+    import pycolmap
+
+    n = len(capture.image_paths)
+    if n < 2:
+        raise ValueError(f"{capture.source_file}: COLMAP refinement needs at least 2 images, got {n}")
+    matcher = choose_matcher(matcher, n)
+    centres = camera_to_world[:, :3, 3]
+    scene_size = max(float(np.ptp(centres, axis=0).max()), 1e-6)
+    reconstruction = build_reconstruction(capture.image_paths, camera_to_world, capture.intrinsics,
+                                          capture.image_size, capture.distortion)
+    if workdir_parent is not None:
+        Path(workdir_parent).mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=".colmap-refine-", dir=workdir_parent) as tmp:
+        tmp = Path(tmp)
+        database = tmp / "database.db"
+        _write_database(database, reconstruction, with_pose_priors=(matcher == "spatial"))
+
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.num_threads = threads
+        extraction.sift.max_num_features = max_features
+        log.info("COLMAP: SIFT on %d images", n)
+        pycolmap.extract_features(str(database), str(capture.root), image_names=list(capture.image_paths),
+                                  extraction_options=extraction, device=pycolmap.Device.cpu)
+        db = pycolmap.Database.open(str(database))
+        try:
+            no_features = [image.name for image in db.read_all_images() if db.num_keypoints_for_image(image.image_id) == 0]
+        finally:
+            db.close()
+        if len(no_features) == n:
+            raise RuntimeError(f"{capture.root}: COLMAP found no SIFT features in any image")
+        log.info("COLMAP: %s matching", matcher)
+        _match(database, matcher, n, scene_size, threads)
+
+        (tmp / "tri1").mkdir()
+        reconstruction = pycolmap.triangulate_points(
+            reconstruction, str(database), str(capture.root), str(tmp / "tri1"),
+            clear_points=True, options=_triangulation_options(threads, loose=True),
+        )
+        before = _summary(reconstruction)
+        if before["num_points3D"] == 0:
+            raise RuntimeError(f"{capture.root}: COLMAP triangulated no points from the given poses")
+        log.info("COLMAP: triangulated from the given poses: %s", before)
+
+        _bundle_adjust(reconstruction, threads)
+        filtered = _filter_outliers(reconstruction)
+        _bundle_adjust(reconstruction, threads)
+        (tmp / "tri2").mkdir()
+        reconstruction = pycolmap.triangulate_points(
+            reconstruction, str(database), str(capture.root), str(tmp / "tri2"),
+            clear_points=True, options=_triangulation_options(threads, loose=False),
+        )
+        _bundle_adjust(reconstruction, threads)
+        filtered += _filter_outliers(reconstruction)
+        after = _summary(reconstruction)
+        log.info("COLMAP: after bundle adjustment: %s", after)
+
+    refined = _poses_in_order(reconstruction, n)
+    observed = np.array([reconstruction.images[i + 1].num_points3D for i in range(n)])
+    constrained = observed >= MIN_OBSERVATIONS
+    if constrained.sum() < 3:
+        raise RuntimeError(
+            f"{capture.root}: COLMAP refinement constrained only {int(constrained.sum())} of {n} images "
+            f"(>= {MIN_OBSERVATIONS} points each); too few matches to refine the poses"
+        )
+    # Bundle adjustment drifts the gauge: map the refined cameras back onto the given ones,
+    # using only the cameras that bundle adjustment could actually constrain.
+    from srfpipe.poses import similarity_align
+
+    world_from_refined = similarity_align(refined[constrained, :3, 3], centres[constrained])
+    refined = cameras.transform_poses(world_from_refined, refined)
+    refined[~constrained] = camera_to_world[~constrained]  # a pose seen through a handful of points is noise
+    points = cameras.transform_points(world_from_refined, _points(reconstruction))
+    stats = {
+        "method": "colmap",
+        "matcher": matcher,
+        "num_images": n,
+        "num_images_refined": int(constrained.sum()),
+        "images_kept_as_given": [capture.image_paths[i] for i in np.flatnonzero(~constrained)],
+        "images_without_features": no_features,
+        "reprojection_error_before_px": before["reprojection_error_px"],
+        "reprojection_error_after_px": after["reprojection_error_px"],
+        "num_points3D_before": before["num_points3D"],
+        "num_points3D": after["num_points3D"],
+        "num_observations": after["num_observations"],
+        "observations_filtered": filtered,
+        "gauge_alignment_scale": float(np.cbrt(np.linalg.det(world_from_refined[:3, :3]))),
+        "pycolmap": pycolmap.__version__,
+    }
+    return RefinementResult(camera_to_world=refined, points_world=points, stats=stats)

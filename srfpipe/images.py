@@ -1,0 +1,216 @@
+"""Undistort and downscale the posed images into `images.zarr`, one image in memory at a time.
+
+For every frame of `poses.zarr`: read the image (OpenCV, BGR -> RGB; alpha composited over white
+as nerfstudio does for Blender scenes; 16-bit scaled to 8-bit), undistort it when it has OpenCV
+distortion (the pinhole K is kept), resize it with INTER_AREA by the scene's `images.downscale`
+factor to (round(w / f), round(h / f)) and scale the intrinsics by the actual size ratio. The
+orchard's ground truth (`labels`, `depth`) goes through the same undistortion and resize with
+nearest-neighbour sampling, so class ids and depths stay exact values.
+
+Memory: one full-resolution image plus its downscaled copy; each image is one Zarr chunk.
+The artifact is written atomically (`srfpipe.artifacts.create_artifact`).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from srfpipe import cameras
+from srfpipe.config import add_options_arguments, stage_options, validate_scene
+
+log = logging.getLogger(__name__)
+
+
+def target_size(width: int, height: int, factor: float) -> tuple[int, int]:
+    """(round(w / f), round(h / f)), at least 1 pixel each."""
+    return max(1, int(round(width / factor))), max(1, int(round(height / factor)))
+
+
+def opencv_camera_matrix(intrinsics) -> np.ndarray:
+    """K in OpenCV's pixel frame, where pixel centres are integers (ours are at +0.5)."""
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    return cameras.intrinsic_matrix(fx, fy, cx - 0.5, cy - 0.5)
+
+
+class Undistorter:
+    """Undistortion maps for one calibration, reused while consecutive frames share it."""
+
+    def __init__(self):
+        self._key = None
+        self._maps = None
+
+    def maps(self, intrinsics, distortion, size):
+        import cv2
+
+        key = (tuple(np.asarray(intrinsics).tolist()), tuple(np.asarray(distortion).tolist()), tuple(size))
+        if key != self._key:
+            k = opencv_camera_matrix(intrinsics)
+            # newCameraMatrix = K: the undistorted image is a pinhole image with the same intrinsics
+            self._maps = cv2.initUndistortRectifyMap(
+                k, np.asarray(distortion, np.float64), None, k, tuple(int(v) for v in size), cv2.CV_32FC1
+            )
+            self._key = key
+        return self._maps
+
+    def __call__(self, image, intrinsics, distortion, interpolation):
+        import cv2
+
+        if not np.any(np.asarray(distortion) != 0):
+            return image
+        map_x, map_y = self.maps(intrinsics, distortion, (image.shape[1], image.shape[0]))
+        border = cv2.BORDER_CONSTANT
+        return cv2.remap(image, map_x, map_y, interpolation, borderMode=border, borderValue=0)
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    """An image file as (H, W, 3) uint8 RGB; error naming the file when OpenCV cannot decode it."""
+    import cv2
+
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: image does not exist")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise ValueError(f"{path}: corrupt or unreadable image (OpenCV could not decode it)")
+    if image.dtype == np.uint16:
+        image = (image.astype(np.float32) / 257.0 + 0.5).astype(np.uint8)
+    elif image.dtype != np.uint8:
+        raise ValueError(f"{path}: unsupported pixel type {image.dtype} (8- or 16-bit images only)")
+    if image.ndim == 2:
+        return cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
+    if image.shape[2] == 4:
+        # RGBA (Blender NeRF scenes): composite over white, as nerfstudio does for them.
+        alpha = image[..., 3:4].astype(np.float32) / 255.0
+        rgb = image[..., :3].astype(np.float32) * alpha + 255.0 * (1.0 - alpha)
+        image = (rgb + 0.5).astype(np.uint8)
+    return cv2.cvtColor(image[..., :3], cv2.COLOR_BGR2RGB)
+
+
+def _ground_truth_files(ground_truth: Path, image_paths: list[str]) -> dict[str, list[Path]] | None:
+    """labels/<stem>.png and depth/<stem>.npy per frame, when the capture has ground truth."""
+    stems = [Path(p).stem for p in image_paths]
+    files = {}
+    for kind, suffix in (("labels", ".png"), ("depth", ".npy")):
+        if (ground_truth / kind).is_dir():
+            files[kind] = [ground_truth / kind / f"{stem}{suffix}" for stem in stems]
+    return files or None
+
+
+def _read_label(path: Path) -> np.ndarray:
+    import cv2
+
+    label = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if label is None:
+        raise ValueError(f"{path}: corrupt or missing label image")
+    if label.ndim != 2 or label.dtype != np.uint8:
+        raise ValueError(f"{path}: a label image must be single-channel uint8, got {label.shape} {label.dtype}")
+    return label
+
+
+def _read_depth(path: Path) -> np.ndarray:
+    try:
+        depth = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path}: cannot read depth map ({exc})") from exc
+    if depth.ndim != 2:
+        raise ValueError(f"{path}: a depth map must be 2-D, got shape {depth.shape}")
+    return depth.astype(np.float32)
+
+
+def downscale_images(poses_path: str | Path, options: dict, out: str | Path, progress: bool = True) -> Path:
+    """Write `images.zarr` from `poses.zarr` (see docs/artifacts.md); `options` is the `images` section."""
+    import cv2
+    from tqdm import tqdm
+
+    from srfpipe.artifacts import create_artifact, meta, open_artifact, update_attrs
+
+    options = validate_scene({"images": dict(options)}, "images options")["images"]
+    factor = float(options["downscale"])
+    poses = open_artifact(poses_path, stage="poses")
+    info = meta(poses)
+    root = Path(info["capture_root"])
+    image_paths = list(info["image_paths"])
+    intrinsics = poses["intrinsics"][:]
+    distortion = poses["distortion"][:]
+    image_size = poses["image_size"][:]
+    n = len(image_paths)
+
+    sizes = [target_size(w, h, factor) for w, h in image_size]
+    width, height = sizes[0]
+    for path, size in zip(image_paths, sizes):
+        if size != (width, height):
+            raise ValueError(
+                f"{root / path}: downscaled size {size[0]}x{size[1]} differs from the first image's "
+                f"{width}x{height} ({root / image_paths[0]}); all images of a capture must share one size"
+            )
+    scaled = np.stack([
+        cameras.scale_intrinsics(k, width / w, height / h) for k, (w, h) in zip(intrinsics, image_size)
+    ])
+    ground_truth = Path(info["ground_truth"]) if info.get("ground_truth") else None
+    gt_files = _ground_truth_files(ground_truth, image_paths) if ground_truth else None
+
+    config = {"images": options}
+    with create_artifact(out, "downscale", config=config, inputs=[str(poses_path)]) as group:
+        images = group.create_array("images", shape=(n, height, width, 3), chunks=(1, height, width, 3),
+                                    dtype="uint8", dimension_names=("image", "y", "x", "c"))
+        group.create_array("intrinsics", data=scaled, dimension_names=("image", "k"))
+        group.create_array("camera_to_world", data=poses["camera_to_world"][:], dimension_names=("image", "row", "col"))
+        gt_arrays = {}
+        if gt_files:
+            gt = group.create_group("ground_truth")
+            if "labels" in gt_files:
+                gt_arrays["labels"] = gt.create_array("labels", shape=(n, height, width), chunks=(1, height, width),
+                                                      dtype="uint8", dimension_names=("image", "y", "x"))
+            if "depth" in gt_files:
+                gt_arrays["depth"] = gt.create_array("depth", shape=(n, height, width), chunks=(1, height, width),
+                                                     dtype="float32", dimension_names=("image", "y", "x"))
+        undistort = Undistorter()
+        for i in tqdm(range(n), desc="downscale", unit="image", disable=not progress):
+            path = root / image_paths[i]
+            rgb = read_rgb(path)
+            w, h = (int(v) for v in image_size[i])
+            if rgb.shape[:2] != (h, w):
+                raise ValueError(
+                    f"{path}: image is {rgb.shape[1]}x{rgb.shape[0]} but its camera says {w}x{h}"
+                )
+            rgb = undistort(rgb, intrinsics[i], distortion[i], cv2.INTER_LINEAR)
+            images[i] = cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
+            for kind, array in gt_arrays.items():
+                gt_path = gt_files[kind][i]
+                data = _read_label(gt_path) if kind == "labels" else _read_depth(gt_path)
+                if data.shape != (h, w):
+                    raise ValueError(f"{gt_path}: {kind} is {data.shape[1]}x{data.shape[0]}, the image is {w}x{h}")
+                # nearest: class ids and depths must not be blended across edges
+                data = undistort(data, intrinsics[i], distortion[i], cv2.INTER_NEAREST)
+                array[i] = cv2.resize(data, (width, height), interpolation=cv2.INTER_NEAREST_EXACT)
+        update_attrs(
+            group,
+            names=info["names"],
+            image_paths=image_paths,
+            capture_root=str(root),
+            width=width,
+            height=height,
+            downscale=factor,
+            undistorted=bool(np.any(distortion != 0)),
+            scene_from_world=info["scene_from_world"],
+            world_from_scene=info["world_from_scene"],
+            bounds_world=info["bounds_world"],
+            ground_truth=str(ground_truth) if ground_truth else None,
+        )
+    log.info("wrote %s: %d images of %dx%d (downscale %g)", out, n, width, height, factor)
+    return Path(out)
+
+
+def add_arguments(parser) -> None:
+    add_options_arguments(parser, "images")
+    parser.add_argument("--poses", required=True, metavar="ZARR", help="poses.zarr written by `srfpipe poses`")
+    parser.add_argument("--out", required=True, metavar="ZARR", help="images.zarr to write (atomically)")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def run(args) -> int:
+    options = stage_options(args, "images")
+    downscale_images(args.poses, options, args.out, progress=not args.no_progress)
+    return 0

@@ -1,0 +1,410 @@
+"""Pose import (nerfstudio, Blender, COLMAP, orchard), validation errors, bounds, normalization, refinement."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from srfpipe import cameras
+from srfpipe.artifacts import meta, open_artifact
+from srfpipe.poses import (
+    bounds_from_frusta,
+    bounds_from_points,
+    colmap_camera_parameters,
+    import_poses,
+    load_capture,
+    perturb_poses,
+    pose_errors,
+    read_blender,
+    read_colmap,
+    read_nerfstudio,
+)
+
+# ----------------------------------------------------------------------------- synthetic captures
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """OpenCV camera_to_world at `eye` looking at `target`."""
+    eye = np.asarray(eye, float)
+    forward = np.asarray(target, float) - eye
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    pose = np.eye(4)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, np.cross(forward, right), forward, eye
+    return pose
+
+
+def ring(n: int, radius: float = 3.0, height: float = 1.0, target=(0.0, 0.0, 1.0)) -> np.ndarray:
+    angles = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    return np.stack([look_at([radius * np.cos(a), radius * np.sin(a), height], target) for a in angles])
+
+
+def write_noise_images(folder: Path, names, width: int, height: int, seed: int = 0, channels: int = 3) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    for name in names:
+        image = rng.integers(0, 256, size=(height, width, channels), dtype=np.uint8)
+        assert cv2.imwrite(str(folder / name), image)
+
+
+def write_nerfstudio(root: Path, poses_cv: np.ndarray, width=32, height=24, intrinsics=(30.0, 31.0, 16.0, 12.0),
+                     distortion=(0.0, 0.0, 0.0, 0.0), **extra) -> Path:
+    """A nerfstudio capture with noise images; poses given in OpenCV convention, stored as OpenGL."""
+    names = [f"frame_{i:05d}.png" for i in range(len(poses_cv))]
+    write_noise_images(root / "images", names, width, height)
+    fx, fy, cx, cy = intrinsics
+    k1, k2, p1, p2 = distortion
+    meta_json = {
+        "camera_model": "OPENCV", "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": width, "h": height,
+        "k1": k1, "k2": k2, "p1": p1, "p2": p2,
+        "frames": [{"file_path": f"images/{n}", "transform_matrix": cameras.opencv_to_opengl(p).tolist()}
+                   for n, p in zip(names, poses_cv)],
+        **extra,
+    }
+    (root / "transforms.json").write_text(json.dumps(meta_json))
+    return root
+
+
+def edit_transforms(root: Path, edit) -> Path:
+    path = root / "transforms.json"
+    data = json.loads(path.read_text())
+    edit(data)
+    path.write_text(json.dumps(data))
+    return path
+
+
+def write_colmap_model(root: Path, text: bool, n_images: int = 4):
+    """A COLMAP model written by pycolmap (two cameras: OPENCV and SIMPLE_RADIAL) plus noise images."""
+    import pycolmap
+
+    poses = ring(n_images)
+    reconstruction = pycolmap.Reconstruction()
+    cam1 = pycolmap.Camera.create_from_model_name(1, "OPENCV", 30.0, 32, 24)
+    cam1.params = [30.0, 31.0, 16.5, 12.25, 0.05, -0.01, 0.001, -0.002]
+    cam2 = pycolmap.Camera.create_from_model_name(2, "SIMPLE_RADIAL", 28.0, 32, 24)
+    cam2.params = [28.0, 16.0, 12.0, -0.03]
+    for camera in (cam1, cam2):
+        reconstruction.add_camera_with_trivial_rig(camera)
+    names = [f"im_{i}.jpg" for i in range(n_images)]
+    for i, (name, pose) in enumerate(zip(names, poses)):
+        w2c = np.linalg.inv(pose)
+        image = pycolmap.Image(name=name, camera_id=1 + i % 2, image_id=i + 1)
+        reconstruction.add_image_with_trivial_frame(
+            image, pycolmap.Rigid3d(pycolmap.Rotation3d(w2c[:3, :3]), w2c[:3, 3]))
+    rng = np.random.default_rng(1)
+    points = rng.uniform(-0.5, 0.5, size=(50, 3)) + [0, 0, 1]
+    for p in points:
+        reconstruction.add_point3D(p, pycolmap.Track(), np.zeros(3, np.uint8))
+    model = root / "sparse" / "0"
+    model.mkdir(parents=True)
+    (reconstruction.write_text if text else reconstruction.write_binary)(str(model))
+    write_noise_images(root / "images", names, 32, 24)
+    return poses, points, names
+
+
+# ----------------------------------------------------------------------------- importers
+
+
+def test_nerfstudio_import_converts_opengl_to_opencv(tmp_path):
+    poses = ring(5)
+    write_nerfstudio(tmp_path, poses)
+    capture = read_nerfstudio(tmp_path)
+    np.testing.assert_allclose(capture.camera_to_world, poses, atol=1e-12)
+    np.testing.assert_allclose(capture.intrinsics, [[30.0, 31.0, 16.0, 12.0]] * 5)
+    assert capture.image_size.tolist() == [[32, 24]] * 5
+    assert capture.image_paths[0] == "images/frame_00000.png"
+    assert capture.names[0] == "frame_00000"
+    # the camera really looks at its target: the ring's centre projects to the principal point
+    uv, depth = cameras.project_points(np.array([[0.0, 0.0, 1.0]]), capture.camera_to_world[0], capture.intrinsics[0])
+    np.testing.assert_allclose(uv[0], [16.0, 12.0], atol=1e-9)
+    assert depth[0] > 0
+
+
+def test_nerfstudio_camera_angle_and_per_frame_intrinsics(tmp_path):
+    write_nerfstudio(tmp_path, ring(3))
+
+    def edit(data):
+        for key in ("fl_x", "fl_y", "cx", "cy", "w", "h"):
+            del data[key]
+        data["camera_angle_x"] = np.radians(60.0)
+        data["frames"][1].update({"fl_x": 50.0, "fl_y": 52.0, "cx": 15.0, "cy": 11.0, "k1": 0.1})
+
+    edit_transforms(tmp_path, edit)
+    capture = read_nerfstudio(tmp_path / "transforms.json")
+    focal = 0.5 * 32 / np.tan(np.radians(30.0))  # image width read from the PNG
+    np.testing.assert_allclose(capture.intrinsics[0], [focal, focal, 16.0, 12.0])
+    np.testing.assert_allclose(capture.intrinsics[1], [50.0, 52.0, 15.0, 11.0])
+    np.testing.assert_allclose(capture.distortion[1], [0.1, 0.0, 0.0, 0.0])
+    assert capture.image_size.tolist() == [[32, 24]] * 3
+
+
+def test_nerfstudio_applied_transform_is_undone(tmp_path):
+    original = ring(4)
+    # nerfstudio's COLMAP converter: swap y and z, negate the new z, then store applied @ pose
+    applied = np.eye(4)[[0, 2, 1, 3]]
+    applied[2, :] *= -1
+    write_nerfstudio(tmp_path, cameras.transform_poses(applied, original), applied_transform=applied[:3].tolist())
+    capture = read_nerfstudio(tmp_path)
+    np.testing.assert_allclose(capture.camera_to_world, original, atol=1e-12)
+    assert capture.extra["applied_transform_undone"] == applied[:3].tolist()
+
+
+def test_nerfstudio_unsupported_camera_model_names_file(tmp_path):
+    write_nerfstudio(tmp_path, ring(2))
+    path = edit_transforms(tmp_path, lambda d: d.update(camera_model="OPENCV_FISHEYE"))
+    with pytest.raises(ValueError, match=f"{path}.*OPENCV_FISHEYE"):
+        read_nerfstudio(tmp_path)
+
+
+def test_blender_import_reads_size_from_images_and_adds_png(tmp_path):
+    poses = ring(4)
+    angle = 0.6911
+    for split, frames in (("train", range(0, 3)), ("test", range(3, 4))):
+        names = [f"r_{i}.png" for i in frames]
+        write_noise_images(tmp_path / split, names, 40, 30, channels=4)  # Blender renders are RGBA
+        data = {"camera_angle_x": angle, "frames": [
+            {"file_path": f"./{split}/r_{i}", "rotation": 0.0,
+             "transform_matrix": cameras.opencv_to_opengl(poses[i]).tolist()} for i in frames]}
+        (tmp_path / f"transforms_{split}.json").write_text(json.dumps(data))
+    capture = read_blender(tmp_path)
+    assert capture.image_paths == ["train/r_0.png", "train/r_1.png", "train/r_2.png", "test/r_3.png"]
+    np.testing.assert_allclose(capture.camera_to_world, poses, atol=1e-12)
+    focal = 0.5 * 40 / np.tan(0.5 * angle)
+    np.testing.assert_allclose(capture.intrinsics, [[focal, focal, 20.0, 15.0]] * 4)
+    assert capture.image_size.tolist() == [[40, 30]] * 4
+    assert capture.extra["splits"] == ["train", "train", "train", "test"]
+
+
+@pytest.mark.parametrize("text", [False, True], ids=["binary", "text"])
+def test_colmap_import(tmp_path, text):
+    poses, points, names = write_colmap_model(tmp_path, text)
+    capture = read_colmap(tmp_path)
+    assert capture.image_paths == [f"images/{n}" for n in names]
+    np.testing.assert_allclose(capture.camera_to_world, poses, atol=1e-9)
+    np.testing.assert_allclose(capture.intrinsics[0], [30.0, 31.0, 16.5, 12.25])
+    np.testing.assert_allclose(capture.distortion[0], [0.05, -0.01, 0.001, -0.002])
+    np.testing.assert_allclose(capture.intrinsics[1], [28.0, 28.0, 16.0, 12.0])
+    np.testing.assert_allclose(capture.distortion[1], [-0.03, 0.0, 0.0, 0.0])
+    np.testing.assert_allclose(np.sort(capture.points_world, axis=0), np.sort(points, axis=0), atol=1e-9)
+
+
+def test_colmap_camera_models():
+    import pycolmap
+
+    def camera(model, params):
+        cam = pycolmap.Camera.create_from_model_name(1, model, 10.0, 20, 10)
+        cam.params = params
+        return cam
+
+    assert colmap_camera_parameters(camera("SIMPLE_PINHOLE", [9, 10, 5]), "x") == ([9, 9, 10, 5], [0, 0, 0, 0])
+    assert colmap_camera_parameters(camera("PINHOLE", [9, 8, 10, 5]), "x") == ([9, 8, 10, 5], [0, 0, 0, 0])
+    assert colmap_camera_parameters(camera("RADIAL", [9, 10, 5, 0.1, 0.2]), "x") == ([9, 9, 10, 5], [0.1, 0.2, 0, 0])
+    with pytest.raises(ValueError, match="cam.txt.*OPENCV_FISHEYE is not supported"):
+        colmap_camera_parameters(camera("OPENCV_FISHEYE", [9, 8, 10, 5, 0, 0, 0, 0]), "cam.txt")
+
+
+def test_import_poses_writes_artifact_with_points_bounds(tmp_path):
+    _, points, _ = write_colmap_model(tmp_path / "cap", text=False)
+    out = import_poses({"format": "colmap", "path": str(tmp_path / "cap")}, None, {}, tmp_path / "poses.zarr")
+    group = open_artifact(out, stage="poses")
+    info = meta(group)
+    assert group["camera_to_world"].shape == (4, 4, 4)
+    assert group["points_world"].shape == (50, 3)
+    assert info["bounds_source"] == "points"
+    assert info["source_format"] == "colmap"
+    assert info["refinement"] is None
+    bounds = np.array(info["bounds_world"])
+    assert np.all(bounds[0] <= points.min(0) + 0.02) and np.all(bounds[1] >= points.max(0) - 0.02)
+    assert info["image_paths"][0] == "images/im_0.jpg"
+    assert info["config"]["poses"]["refine"] == "none"
+
+
+# ----------------------------------------------------------------------------- bounds and normalization
+
+
+def test_normalization_round_trip(tmp_path):
+    write_nerfstudio(tmp_path / "cap", ring(6))
+    bounds = [[-1.0, -2.0, 0.0], [3.0, 2.0, 1.0]]
+    out = import_poses({"format": "nerfstudio"}, tmp_path / "cap", {"bounds": bounds}, tmp_path / "p.zarr")
+    info = meta(open_artifact(out))
+    assert info["bounds_source"] == "config"
+    scene_from_world = np.array(info["scene_from_world"])
+    world_from_scene = np.array(info["world_from_scene"])
+    np.testing.assert_allclose(scene_from_world @ world_from_scene, np.eye(4), atol=1e-12)
+    corners = np.array(np.meshgrid(*zip(*bounds), indexing="ij")).reshape(3, -1).T
+    scene = cameras.transform_points(scene_from_world, corners)
+    assert np.abs(scene).max() == pytest.approx(1.0)  # the longest side spans [-1, 1]
+    assert np.all(np.abs(scene) <= 1.0 + 1e-12)
+    points = np.random.default_rng(0).uniform(-5, 5, size=(100, 3))
+    back = cameras.transform_points(world_from_scene, cameras.transform_points(scene_from_world, points))
+    np.testing.assert_allclose(back, points, atol=1e-12)
+    poses = open_artifact(out)["camera_to_world"][:]
+    round_trip = cameras.transform_poses(world_from_scene, cameras.transform_poses(scene_from_world, poses))
+    np.testing.assert_allclose(round_trip, poses, atol=1e-12)
+
+
+def test_bounds_from_points_ignores_outliers():
+    rng = np.random.default_rng(0)
+    points = np.concatenate([rng.uniform(-1, 1, size=(2000, 3)), [[100.0, 100.0, 100.0], [-80.0, 0.0, 0.0]]])
+    bounds = bounds_from_points(points)
+    assert np.all(bounds[0] > -1.2) and np.all(bounds[1] < 1.2)
+    assert np.all(bounds[0] < -0.9) and np.all(bounds[1] > 0.9)
+
+
+def test_bounds_from_frusta_ring_gives_box_around_target():
+    poses = ring(16, radius=3.5, height=1.5, target=(0.5, -0.3, 1.2))
+    intrinsics = np.tile([200.0, 200.0, 160.0, 120.0], (16, 1))  # ~77 deg horizontal field of view
+    sizes = np.tile([320, 240], (16, 1))
+    bounds = bounds_from_frusta(poses, intrinsics, sizes)
+    centre = bounds.mean(0)
+    np.testing.assert_allclose(centre[:2], [0.5, -0.3], atol=0.2)
+    extent = bounds[1] - bounds[0]
+    assert np.all(extent > 1.0) and np.all(extent < 7.0)  # around the object, inside the ring
+    assert np.all(bounds[0] < [0.5, -0.3, 1.2]) and np.all(bounds[1] > [0.5, -0.3, 1.2])
+
+
+# ----------------------------------------------------------------------------- bad inputs
+
+
+def test_missing_image_names_file(tmp_path):
+    write_nerfstudio(tmp_path, ring(3))
+    (tmp_path / "images" / "frame_00001.png").unlink()
+    with pytest.raises(FileNotFoundError, match=r"transforms.json.*frame_00001.png does not exist"):
+        load_capture({"format": "nerfstudio", "path": str(tmp_path)})
+
+
+@pytest.mark.parametrize(
+    "bad, message",
+    [(np.full((4, 4), np.nan), "NaN"),
+     (np.diag([2.0, 1.0, 1.0, 1.0]), "not orthonormal"),
+     (np.diag([-1.0, 1.0, 1.0, 1.0]), "reflection")],
+    ids=["nan", "scaled", "reflection"],
+)
+def test_bad_pose_names_file_and_frame(tmp_path, bad, message):
+    write_nerfstudio(tmp_path, ring(3))
+    # Python's json writes NaN as a bare NaN literal, as many capture tools do
+    path = edit_transforms(tmp_path, lambda d: d["frames"][2].update(transform_matrix=bad.tolist()))
+    with pytest.raises(ValueError, match=rf"{path}: frames\[2\].*{message}"):
+        read_nerfstudio(tmp_path)
+
+
+@pytest.mark.parametrize("file_path", ["../outside.png", "images/../../outside.png", "/etc/hostname"])
+def test_file_path_escaping_dataset_folder(tmp_path, file_path):
+    capture = tmp_path / "capture"
+    write_nerfstudio(capture, ring(2))
+    write_noise_images(tmp_path, ["outside.png"], 32, 24)
+    path = edit_transforms(capture, lambda d: d["frames"][0].update(file_path=file_path))
+    with pytest.raises(ValueError, match=rf"{path}: frames\[0\].*points outside the dataset folder"):
+        read_nerfstudio(capture)
+
+
+def test_absolute_path_inside_capture_is_accepted(tmp_path):
+    write_nerfstudio(tmp_path, ring(2))
+    edit_transforms(tmp_path, lambda d: d["frames"][0].update(file_path=str(tmp_path / "images" / "frame_00000.png")))
+    assert read_nerfstudio(tmp_path).image_paths[0] == "images/frame_00000.png"
+
+
+def test_colmap_images_without_files_is_mismatched_count(tmp_path):
+    write_colmap_model(tmp_path, text=True)
+    (tmp_path / "images" / "im_2.jpg").unlink()
+    with pytest.raises(FileNotFoundError, match=r"sparse/0: mismatched counts: .* 4 posed images but 1 have no file.*im_2"):
+        read_colmap(tmp_path)
+
+
+def test_ground_truth_count_mismatch(tmp_path):
+    write_nerfstudio(tmp_path, ring(3))
+    labels = tmp_path / "ground_truth" / "labels"
+    labels.mkdir(parents=True)
+    for name in ("frame_00000", "frame_00001"):
+        cv2.imwrite(str(labels / f"{name}.png"), np.zeros((24, 32), np.uint8))
+    with pytest.raises(ValueError, match=rf"{labels}: mismatched counts: 2 labels files for 3 frames.*frame_00002"):
+        load_capture({"format": "orchard"}, tmp_path)
+
+
+def test_corrupt_image_names_file(tmp_path):
+    write_nerfstudio(tmp_path, ring(3))
+    bad = tmp_path / "images" / "frame_00001.png"
+    bad.write_bytes(b"this is not a png at all" * 10)
+    with pytest.raises(ValueError, match=rf"{bad}: corrupt"):
+        load_capture({"format": "nerfstudio", "path": str(tmp_path)})
+
+
+def test_unknown_format_names_capture(tmp_path):
+    with pytest.raises(ValueError, match=rf"{tmp_path}: unknown capture format 'polycam'"):
+        import_poses({"format": "polycam"}, tmp_path, {}, tmp_path / "poses.zarr")
+    with pytest.raises(FileNotFoundError, match=rf"{tmp_path}: no transforms.json"):
+        load_capture({"format": "nerfstudio", "path": str(tmp_path)})
+    assert not (tmp_path / "poses.zarr").exists()
+
+
+def test_cli_reports_bad_input_in_one_line(tmp_path, capsys):
+    from srfpipe.cli import main
+
+    write_nerfstudio(tmp_path / "cap", ring(3))
+    (tmp_path / "cap" / "images" / "frame_00002.png").unlink()
+    code = main(["poses", "--source", json.dumps({"format": "nerfstudio"}), "--capture", str(tmp_path / "cap"),
+                 "--out", str(tmp_path / "poses.zarr")])
+    assert code == 1
+    err = capsys.readouterr().err
+    assert "srfpipe poses: error:" in err and "frame_00002.png does not exist" in err
+    assert not (tmp_path / "poses.zarr").exists()
+
+
+# ----------------------------------------------------------------------------- perturbation and errors
+
+
+def test_perturbation_has_requested_size():
+    poses = ring(10)
+    perturbed = perturb_poses(poses, 2.0, 0.1, seed=3)
+    errors = pose_errors(perturbed, poses, scene_size=1.0, align=False)
+    assert errors["rot_err_deg"] == pytest.approx(2.0, abs=1e-9)
+    assert errors["trans_err"] == pytest.approx(0.1, abs=1e-9)
+    np.testing.assert_allclose(perturb_poses(poses, 2.0, 0.1, seed=3), perturbed)  # deterministic
+
+
+def test_pose_errors_ignore_a_change_of_gauge():
+    poses = ring(8)
+    gauge = np.eye(4)
+    gauge[:3, :3] = 2.5 * cv2.Rodrigues(np.array([0.3, -0.2, 0.5]))[0]
+    gauge[:3, 3] = [1.0, -4.0, 2.0]
+    errors = pose_errors(cameras.transform_poses(gauge, poses), poses, scene_size=1.0)
+    assert errors["rot_err_deg"] < 1e-6 and errors["trans_err"] < 1e-9
+
+
+# ----------------------------------------------------------------------------- the orchard capture
+
+
+@pytest.fixture(scope="module")
+def tiny_orchard(tmp_path_factory):
+    from srfpipe.scenes.orchard import generate_orchard
+
+    return generate_orchard(tmp_path_factory.mktemp("orchard") / "capture", progress=False,
+                            views=12, width=64, height=48)
+
+
+def test_orchard_capture_import(tiny_orchard, tmp_path):
+    out = import_poses({"format": "orchard"}, tiny_orchard, {}, tmp_path / "poses.zarr")
+    group = open_artifact(out, stage="poses")
+    info = meta(group)
+    scene = json.loads((tiny_orchard / "ground_truth" / "scene.json").read_text())
+    np.testing.assert_allclose(group["camera_to_world"][:], scene["camera_to_world"], atol=1e-9)
+    k = scene["intrinsics"]
+    np.testing.assert_allclose(group["intrinsics"][0], [k["fx"], k["fy"], k["cx"], k["cy"]])
+    assert info["bounds_source"] == "ground_truth"
+    np.testing.assert_allclose(info["bounds_world"], scene["bounds_world"])
+    assert info["ground_truth"] == str((tiny_orchard / "ground_truth").resolve())
+    assert info["names"] == scene["names"]
+    # every apple lies inside the normalized scene box
+    apples = np.array([a["centre"] for a in json.loads((tiny_orchard / "ground_truth" / "apples.json").read_text())])
+    scene_points = cameras.transform_points(np.array(info["scene_from_world"]), apples)
+    assert np.all(np.abs(scene_points) <= 1.0)
+    # without scene.json, the frusta heuristic still finds a box around the tree
+    capture = load_capture({"format": "nerfstudio", "path": str(tiny_orchard)})
+    frusta = bounds_from_frusta(capture.camera_to_world, capture.intrinsics, capture.image_size)
+    assert np.all(frusta[0] < apples.min(0)) and np.all(frusta[1] > apples.max(0))
+    assert np.max(frusta[1] - frusta[0]) < 2 * scene["parameters"]["ring_radius"]
