@@ -13,8 +13,8 @@ intrinsics held fixed), so this is "point triangulator + bundle adjuster", not S
    filtering, a second triangulation with COLMAP's default thresholds from the refined poses, and
    a final bundle adjustment.
 5. Bundle adjustment leaves the gauge (scale, rotation, position of the world) free, so the result
-   is mapped back by the similarity that best aligns the refined camera centres to the given ones:
-   the world frame (and its units) of the capture is kept.
+   is mapped back by the similarity that best aligns the refined cameras (centres and axes) to the
+   given ones: the world frame (and its units) of the capture is kept.
 
 Reprojection errors (pixels) after step 3 ("before", poses as given) and after step 4 ("after")
 are reported in `stats`, with the numbers of points and observations.
@@ -40,7 +40,7 @@ LOOSE_ANGLE_DEG = 8.0  # first triangulation: the given poses may be this far of
 LOOSE_REPROJ_PX = 24.0
 FILTER_REPROJ_PX = 4.0  # COLMAP's default outlier threshold
 FILTER_MIN_TRI_ANGLE_DEG = 1.5
-MIN_OBSERVATIONS = 20  # fewer observed points than this: the image keeps its given pose
+MIN_OBSERVATIONS = 50  # fewer observed points than this: the image keeps its given pose
 
 
 @dataclass
@@ -274,9 +274,9 @@ def refine_poses(capture, camera_to_world: np.ndarray, matcher: str = "auto",
         )
     # Bundle adjustment drifts the gauge: map the refined cameras back onto the given ones,
     # using only the cameras that bundle adjustment could actually constrain.
-    from srfpipe.poses import similarity_align
+    from srfpipe.poses import align_poses
 
-    world_from_refined = similarity_align(refined[constrained, :3, 3], centres[constrained])
+    world_from_refined = align_poses(refined[constrained], camera_to_world[constrained])
     refined = cameras.transform_poses(world_from_refined, refined)
     refined[~constrained] = camera_to_world[~constrained]  # a pose seen through a handful of points is noise
     points = cameras.transform_points(world_from_refined, _points(reconstruction))

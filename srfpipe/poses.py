@@ -587,16 +587,38 @@ def similarity_align(source_points: np.ndarray, target_points: np.ndarray) -> np
     return np.vstack([sim.matrix(), [0.0, 0.0, 0.0, 1.0]])
 
 
+def _frame_points(camera_to_world: np.ndarray, length: float) -> np.ndarray:
+    """Each camera's centre and the tips of its three axes at `length`: (4N, 3)."""
+    centres = camera_to_world[:, :3, 3]
+    tips = centres[:, None, :] + length * np.swapaxes(camera_to_world[:, :3, :3], 1, 2)
+    return np.concatenate([centres, tips.reshape(-1, 3)])
+
+
+def align_poses(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """4x4 similarity mapping the `source` cameras onto the `target` cameras.
+
+    Fitted to the camera centres *and* their orientations (the tips of the camera axes, placed at
+    the spread of the target centres, before the source is scaled to the target's size): centres
+    alone pin the rotation down poorly when the cameras stand almost in one plane, as on one ring.
+    """
+    source = np.asarray(source, np.float64)
+    target = np.asarray(target, np.float64)
+    scale = similarity_align(source[:, :3, 3], target[:, :3, 3]) if len(source) >= 3 else np.eye(4)
+    source_scale = np.cbrt(np.linalg.det(scale[:3, :3]))
+    length = max(float(np.sqrt(((target[:, :3, 3] - target[:, :3, 3].mean(0)) ** 2).sum(1).mean())), 1e-9)
+    return similarity_align(_frame_points(source, length / source_scale), _frame_points(target, length))
+
+
 def pose_errors(estimate: np.ndarray, reference: np.ndarray, scene_size: float, align: bool = True) -> dict:
     """Mean rotation error (degrees) and camera-centre error relative to `scene_size`.
 
     With `align`, the estimate is first mapped onto the reference by the similarity that best
-    aligns the camera centres, so a change of gauge (scale, rotation, shift) is not an error.
+    aligns the cameras (`align_poses`), so a change of gauge (scale, rotation, shift) is not an error.
     """
     estimate = np.asarray(estimate, np.float64)
     reference = np.asarray(reference, np.float64)
     if align:
-        estimate = cameras.transform_poses(similarity_align(estimate[:, :3, 3], reference[:, :3, 3]), estimate)
+        estimate = cameras.transform_poses(align_poses(estimate, reference), estimate)
     relative = np.einsum("nji,njk->nik", estimate[:, :3, :3], reference[:, :3, :3])
     cos = np.clip((np.trace(relative, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
     rot = np.degrees(np.arccos(cos))
