@@ -53,8 +53,9 @@ def write_workdir(workdir: Path, orchard: dict) -> None:
 
 def run_snakemake(workdir: Path, cores: int) -> float:
     targets = [str(workdir / "results" / scene / "poses.zarr") for scene in ("refined", "perturbed")]
-    command = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "-d", str(workdir),
-               "--cores", str(cores), "--quiet", "rules", *targets]
+    # targets first: --quiet takes a variable number of values
+    command = [sys.executable, "-m", "snakemake", *targets, "-s", str(REPO / "Snakefile"), "-d", str(workdir),
+               "--cores", str(cores), "--quiet", "rules"]
     started = time.perf_counter()
     subprocess.run(command, check=True)
     return time.perf_counter() - started
