@@ -1,0 +1,49 @@
+"""The Snakemake workflow end to end on a tiny orchard, and what a config change re-runs."""
+
+import numpy as np
+import pytest
+
+from srfpipe.artifacts import open_artifact, read_provenance
+from tests.conftest import TINY_ORCHARD
+
+pytestmark = pytest.mark.workflow
+
+
+def test_tiny_orchard_to_images(workflow):
+    workflow.write_scene("tiny", TINY_ORCHARD)
+    workflow.run("results/tiny/images.zarr")
+    images = open_artifact(workflow.root / "results/tiny/images.zarr", stage="downscale")
+    assert images["images"].shape == (12, 48, 64, 3)
+    assert images["images"].dtype == np.uint8
+    pixels = images["images"][0]
+    assert pixels.std() > 5, "the render should not be a flat colour"
+    poses = read_provenance(workflow.root / "results/tiny/poses.zarr")
+    assert poses["complete"] and poses["source_format"] == "orchard"
+    for rule in ("orchard_capture", "poses", "downscale"):
+        assert (workflow.root / "logs" / "tiny" / f"{rule}.log").exists()
+        assert (workflow.root / "benchmarks" / "runs" / "tiny" / f"{rule}.tsv").exists()
+
+
+def test_changing_downscale_reruns_only_downstream(workflow):
+    workflow.write_scene("tiny", TINY_ORCHARD)
+    workflow.run("results/tiny/images.zarr")
+    assert workflow.dry_run_jobs("results/tiny/images.zarr") == {}, "a finished build has nothing to do"
+
+    changed = {**TINY_ORCHARD, "images": {"downscale": 2}}
+    workflow.write_scene("tiny", changed)
+    jobs = workflow.dry_run_jobs("results/tiny/images.zarr")
+    assert jobs.get("downscale") == 1
+    assert "poses" not in jobs and "orchard_capture" not in jobs
+
+    workflow.run("results/tiny/images.zarr")
+    images = open_artifact(workflow.root / "results/tiny/images.zarr", stage="downscale")
+    assert images["images"].shape == (12, 24, 32, 3)
+    assert read_provenance(workflow.root / "results/tiny/images.zarr")["config"]["images"]["downscale"] == 2
+
+
+def test_bad_scene_file_fails_at_start_naming_file_and_key(workflow):
+    workflow.write_scene("tiny", {**TINY_ORCHARD, "images": {"downscale": 0.5}})
+    result = workflow.run("-n", "results/tiny/images.zarr", check=False)
+    assert result.returncode != 0
+    output = result.stdout + result.stderr
+    assert "tiny.yaml" in output and "images.downscale" in output
