@@ -215,3 +215,24 @@ def test_chunked_rendering_matches_whole_image(monkeypatch):
     for a, b in zip((whole.rgb, whole.label, whole.depth), (chunked.rgb, chunked.label, chunked.depth)):
         np.testing.assert_array_equal(a, b)
     assert set(np.unique(whole.label).tolist()) >= {0, 2, 3}
+
+
+def test_failed_run_leaves_old_output_untouched(tmp_path, monkeypatch):
+    from srfpipe.scenes import raycast
+
+    small = {"views": 2, "width": 32, "height": 24}
+    out = generate_orchard(tmp_path / "capture", progress=False, seed=1, **small)
+    before = (out / "ground_truth" / "apples.json").read_text()
+
+    def broken(self, *args, **kwargs):
+        raise RuntimeError("renderer crashed")
+
+    monkeypatch.setattr(raycast.OrchardRenderer, "render", broken)
+    with pytest.raises(RuntimeError, match="renderer crashed"):
+        generate_orchard(out, progress=False, seed=2, **small)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["capture"], "temp folder left behind"
+    assert (out / "ground_truth" / "apples.json").read_text() == before
+    monkeypatch.undo()
+    generate_orchard(out, progress=False, seed=2, **small)  # a rerun replaces the old capture
+    assert (out / "ground_truth" / "apples.json").read_text() != before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["capture"]
