@@ -207,7 +207,8 @@ def test_chunked_rendering_matches_whole_image(monkeypatch):
     from srfpipe.scenes.orchard import intrinsics_for, look_at, sun_direction
     from srfpipe.scenes.tree import build_tree
 
-    renderer = raycast.OrchardRenderer(build_tree(1, 6, 3, 1.0, 2.5), 1, sun_direction(np.random.default_rng(1)))
+    sun = sun_direction(np.random.default_rng(1))
+    renderer = raycast.OrchardRenderer(build_tree(1, 6, 3, 1.0, 2.5), 1, sun)
     pose = look_at([3.0, -1.5, 1.5], [0.0, 0.0, 1.3])
     whole = renderer.render(pose, intrinsics_for(48, 36, 60), 48, 36)
     monkeypatch.setattr(raycast, "RAYS_PER_CHUNK", 777)

@@ -8,7 +8,7 @@ Output (a nerfstudio capture folder plus ground truth, see docs/artifacts.md)::
 
     OUT/transforms.json            nerfstudio (OpenGL camera: looks down -z, +y up), camera_model OPENCV
     OUT/images/frame_00000.png     RGB renders
-    OUT/ground_truth/labels/frame_00000.png   uint8 classes: 0 background (sky, ground), 1 apple, 2 branch, 3 leaf
+    OUT/ground_truth/labels/frame_00000.png   uint8: 0 background (sky, ground), 1 apple, 2 branch, 3 leaf
     OUT/ground_truth/depth/frame_00000.npy    float32 z-depth along the camera +z (metres), 0 = no hit
     OUT/ground_truth/meshes/{apple,branch,leaf,ground}.ply
     OUT/ground_truth/apples.json   [{"centre": [x, y, z], "radius": r}, ...]
@@ -91,7 +91,8 @@ def sun_direction(rng: np.random.Generator) -> np.ndarray:
     """Unit vector toward the sun: any azimuth, a mid-day elevation (varies by seed, for training variety)."""
     azimuth = rng.uniform(0, 2 * np.pi)
     elevation = np.radians(rng.uniform(*SUN_ELEVATION_DEG))
-    return np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)])
+    horizontal = np.cos(elevation)
+    return np.array([horizontal * np.cos(azimuth), horizontal * np.sin(azimuth), np.sin(elevation)])
 
 
 # ----------------------------------------------------------------------------- output
@@ -174,9 +175,8 @@ def generate_orchard(out_dir: str | Path, progress: bool = True, **options) -> P
     out = Path(out_dir)
     started = time.perf_counter()
     rng = np.random.default_rng([params["seed"], 1])  # views and sun: independent of the tree stream
-    tree = build_tree(
-        params["seed"], params["n_apples"], params["branch_depth"], params["leaf_density"], params["tree_height"]
-    )
+    tree = build_tree(params["seed"], params["n_apples"], params["branch_depth"],
+                      params["leaf_density"], params["tree_height"])
     if len(tree.apple_centres) < params["n_apples"]:
         log.warning("placed %d of %d apples (no more free space on the branches)",
                     len(tree.apple_centres), params["n_apples"])
@@ -195,7 +195,8 @@ def generate_orchard(out_dir: str | Path, progress: bool = True, **options) -> P
         for folder in (tmp / "images", gt / "labels", gt / "depth", gt / "meshes"):
             folder.mkdir(parents=True)
         class_pixels = np.zeros(len(CLASSES), np.int64)
-        for name, pose in tqdm(list(zip(names, poses)), desc="orchard views", unit="view", disable=not progress):
+        views = tqdm(list(zip(names, poses)), desc="orchard views", unit="view", disable=not progress)
+        for name, pose in views:
             view = renderer.render(pose, intrinsics, width, height)
             if not cv2.imwrite(str(tmp / "images" / f"{name}.png"), view.rgb[..., ::-1]):
                 raise RuntimeError(f"{tmp / 'images' / name}.png: OpenCV could not write the image")
@@ -243,7 +244,8 @@ def add_arguments(parser) -> None:
     defaults = section_defaults("orchard")
     parser.epilog = "orchard keys (schema defaults): " + ", ".join(f"{k}={v}" for k, v in defaults.items())
     add_options_arguments(parser, "orchard")
-    parser.add_argument("--out", required=True, metavar="DIR", help="capture folder to write (replaced atomically)")
+    parser.add_argument("--out", required=True, metavar="DIR",
+                        help="capture folder to write (replaced atomically)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 

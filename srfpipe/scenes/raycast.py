@@ -214,7 +214,8 @@ class OrchardRenderer:
             sl = slice(lo, lo + RAYS_PER_CHUNK)
             rgb[sl], label[sl], depth[sl] = self._render_rays(origins[sl], directions[sl], forward,
                                                               float(intrinsics[0]))
-        return Render(rgb.reshape(height, width, 3), label.reshape(height, width), depth.reshape(height, width))
+        shape = (height, width)
+        return Render(rgb.reshape(*shape, 3), label.reshape(shape), depth.reshape(shape))
 
     def _render_rays(self, origins, directions, forward, focal: float):
         """Colour (uint8), class label and z-depth of unit-direction rays from one camera."""

@@ -189,7 +189,8 @@ def grow_skeleton(rng: np.random.Generator, depth: int) -> list[Segment]:
                 # the last child continues from the tip; the others sprout along the parent
                 at = 1.0 if k == n_children - 1 else rng.uniform(0.55, 0.95)
                 start = parent.start + at * axis
-                child_dir = _tilt(direction, rng.uniform(0.6, 1.05), azimuth0 + 2 * k * golden + rng.normal(0, 0.2))
+                tilt = rng.uniform(0.6, 1.05)
+                child_dir = _tilt(direction, tilt, azimuth0 + 2 * k * golden + rng.normal(0, 0.2))
                 child_dir = child_dir + np.array([0.0, 0.0, 0.25])  # phototropism
                 child_dir /= np.linalg.norm(child_dir)
                 if level == 1:  # scaffold branches: a fixed share of the unit tree, whatever the trunk
@@ -257,7 +258,9 @@ def _hang_apples(rng, segments, n_apples: int, depth: int, radius: float) -> np.
         seg = candidates[rng.choice(len(candidates), p=weights)]
         point = seg.start + rng.uniform(0.3, 1.0) * (seg.end - seg.start)
         # a short stalk: the apple hangs below its branch, a little to one side
-        offset = np.array([*rng.normal(0.0, 0.3 * radius, 2), -(radius + seg.radius + rng.uniform(0.005, 0.03))])
+        sideways = rng.normal(0.0, 0.3 * radius, 2)
+        stalk = rng.uniform(0.005, 0.03)
+        offset = np.array([*sideways, -(radius + seg.radius + stalk)])
         centre = point + offset
         if centre[2] < 0.4 + radius:
             continue
