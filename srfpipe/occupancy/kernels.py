@@ -9,7 +9,10 @@ Points outside the grid box are free space (0 / no class).
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import config, njit, prange
+
+# OpenMP first: numba's default TBB layer warns (and is skipped) with the TBB that pip installs
+config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 
 _OPTS = dict(parallel=True, cache=True, nogil=True, fastmath=False)
 
