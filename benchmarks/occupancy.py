@@ -82,7 +82,7 @@ def voxelize_mesh(path: Path, grid, closed: bool) -> np.ndarray:
 def accuracy(cache, ground_truth: Path) -> dict:
     from srfpipe.artifacts import open_artifact
 
-    group = open_artifact(cache.attrs_path, stage="distill")
+    group = open_artifact(cache.path, stage="distill")
     predicted = group["class_occupancy"][...].astype(bool)
     metrics, truths = {}, {}
     for name, closed in MESH_CLASSES.items():
@@ -198,7 +198,6 @@ def main(argv=None) -> int:
         srf_path, ground_truth, cache_path = root / "srf.zarr", root / "capture" / "ground_truth", root / "occupancy.zarr"
 
     cache = OccupancyCache.load(cache_path)
-    cache.attrs_path = cache_path
     from srfpipe.artifacts import read_provenance
 
     srf_meta = read_provenance(srf_path)

@@ -45,6 +45,7 @@ class OccupancyCache:
         self.grid = grid
         self.classes = list(classes)
         self.attrs = attrs or {}
+        self.path: Path | None = None  # the occupancy.zarr it was loaded from
         self._occupancy = np.ascontiguousarray(occupancy, dtype=np.uint8)
         self._density = np.ascontiguousarray(density, dtype=np.float32)
         # channels last: the 8 corners of a trilinear lookup read C contiguous bytes each
@@ -81,8 +82,10 @@ class OccupancyCache:
         if len(leaves):
             xyz = morton_decode(leaves)
             leaf_class[xyz[:, 2], xyz[:, 1], xyz[:, 0]] = octree["leaf_class"][...]
-        return cls(grid, classes, group["occupancy"][...], group["density"][...], group["probability"][...],
-                   group["class_occupancy"][...], distance_fields, codes, leaf_class, attrs)
+        cache = cls(grid, classes, group["occupancy"][...], group["density"][...], group["probability"][...],
+                    group["class_occupancy"][...], distance_fields, codes, leaf_class, attrs)
+        cache.path = Path(path)
+        return cache
 
     def _dense_levels(self, octree_levels: list[np.ndarray]) -> list[np.ndarray]:
         """Octree levels (root first, Morton codes) -> dense uint8 grids, finest (the voxels) first."""
