@@ -26,7 +26,7 @@ rule segment:
         runtime=60,
     shell:
         "srfpipe segment --images {input.images} --prompt {wildcards.prompt} --threads {threads} "
-        "--no-progress --options {params.options:q} --out {output} > {log} 2>&1"
+        "--options {params.options:q} --out {output} > {log} 2>&1"
 
 
 rule composite:
@@ -45,5 +45,5 @@ rule composite:
         mem_mb=2000,
         runtime=30,
     shell:
-        "srfpipe composite --masks {input.masks} --no-progress --options {params.options:q} "
+        "srfpipe composite --masks {input.masks} --options {params.options:q} "
         "--out {output} > {log} 2>&1"
