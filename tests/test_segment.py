@@ -415,3 +415,14 @@ def test_orchard_masks_match_ground_truth_and_new_prompts_run_alone(workflow):
     scene["labels"] = {"keep_empty_classes": True}
     workflow.write_scene("small", scene)
     assert dry_run_outputs(workflow, target) == ["results/small/labels.zarr"]
+
+
+def test_cli_reports_an_unknown_prompt_in_one_line(tmp_path):
+    images = write_images(tmp_path / "images.zarr", red_blue_images(n=1))
+    result = subprocess.run([sys.executable, "-m", "srfpipe.cli", "segment", "--images", str(images),
+                             "--prompt", "trunk", "--out", str(tmp_path / "trunk.zarr")],
+                            capture_output=True, text=True)
+    assert result.returncode == 1
+    assert "unknown prompt 'trunk'" in result.stderr and "['apple', 'branch', 'leaf']" in result.stderr
+    assert "orchard_segmenter.onnx" in result.stderr and "Traceback" not in result.stderr
+    assert not (tmp_path / "trunk.zarr").exists()
