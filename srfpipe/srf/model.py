@@ -63,6 +63,10 @@ def build_model_config(options: dict, bounds_world, scene_from_world, classes: l
         outer = None
     else:
         raise ValueError(f"train.encoding must be auto, dense or hash, got {encoding!r}")
+    density_grid = bool(options.get("density_grid", encoding == "dense"))
+    step = detail_scene * float(options.get("step_ratio", 1.0))
+    # initial opacity per step of the density grid: faintly foggy, so every cell gets gradients
+    density_bias = math.log(float(options.get("initial_opacity", 0.01)) / step) if density_grid else -1.0
     occupancy_resolution = [max(int(math.ceil((r - 1) / 2)), 1) for r in resolution]
     return {
         "box_min": box_min.tolist(), "box_max": box_max.tolist(),
@@ -70,10 +74,12 @@ def build_model_config(options: dict, bounds_world, scene_from_world, classes: l
         "hidden": int(options.get("hidden", 64)), "geo_features": int(options.get("geo_features", 15)),
         "sh_degree": int(options.get("sh_degree", 4)), "num_classes": len(classes),
         "appearance_dim": int(options.get("appearance_dim", 0)), "num_images": int(num_images),
-        "density_bias": -1.0,
+        "density_bias": density_bias, "density_grid": density_grid,
+        "color_layers": int(options.get("color_layers", 2)),
+        "color_threshold": float(options.get("color_threshold", 1e-4)),
         "detail_scene": detail_scene,
         "sampler": {
-            "step": detail_scene * float(options.get("step_ratio", 1.0)),
+            "step": step,
             "near": float(options.get("near", 0.05)), "far": float(options.get("far", 200.0)),
             "contraction": contraction, "outer_samples": int(options.get("outer_samples", 48)),
             "before_samples": int(options.get("before_samples", 16)),
@@ -98,6 +104,7 @@ class SRFModel(nn.Module):
             config["box_min"], config["box_max"], occ["resolution"], config["contraction"],
             occ["outer_resolution"], step=self.settings.step, threshold=occ["threshold"], decay=occ["decay"],
         )
+        self.color_threshold = float(config.get("color_threshold", 1e-4))
 
     def sample(self, origins, directions, jitter=None):
         """Candidate intervals culled by the occupancy grid, packed (see sampling.pack)."""
@@ -114,30 +121,42 @@ class SRFModel(nn.Module):
     def forward(self, origins, directions, image_index=None, jitter=None) -> dict:
         """Render rays (R, 3) in the scene frame. Returns rgb (R, 3), logits (R, C), depth (R,)
         (scene-frame distance along the ray), accumulation (R,), samples (number evaluated)."""
+        field = self.field
         samples = self.sample(origins, directions, jitter)
         mask = samples.mask
-        rays = mask.nonzero(as_tuple=True)[0]
-        t_mid = samples.t_mid[mask]
-        dirs = directions[rays]
-        points = origins[rays] + dirs * t_mid[:, None]
-        sigma, h = self.field.density(points)
-        rgb = self.field.color(h, dirs, None if image_index is None else image_index[rays])
-        logits = self.field.semantics(h)
         n, k = mask.shape
-        c = logits.shape[-1]
+        rays = mask.nonzero(as_tuple=True)[0]
+        points = origins[rays] + directions[rays] * samples.t_mid[mask][:, None]
+        if field.density_grid:
+            sigma = field.sigma(points)
+        else:
+            sigma, h = field.density(points)
         sigma_pad = torch.zeros(n, k, device=sigma.device).masked_scatter(mask, sigma.float())
-        rgb_pad = torch.zeros(n, k, 3, device=rgb.device).masked_scatter(mask.unsqueeze(-1), rgb.float())
-        sem_pad = torch.zeros(n, k, c, device=logits.device).masked_scatter(mask.unsqueeze(-1), logits.float())
         weights = rendering.render_weights(sigma_pad, samples.delta)
         acc = rendering.accumulation(weights)
+        if field.density_grid:
+            # colour and semantics only where a sample can matter: w_k > threshold (occluded
+            # samples and near-empty space are skipped; their contribution is below the threshold)
+            significant = (weights.detach() > self.color_threshold) & mask
+            shade = significant[mask]
+            shade_rays = rays[shade]
+            h = field.latent(points[shade])
+            colour_mask = significant
+        else:
+            shade_rays, colour_mask = rays, mask
+        rgb = field.color(h, directions, image_index, ray_index=shade_rays)
+        logits = field.semantics(h)
+        c = logits.shape[-1]
+        rgb_pad = torch.zeros(n, k, 3, device=rgb.device).masked_scatter(colour_mask.unsqueeze(-1), rgb.float())
+        sem_pad = torch.zeros(n, k, c, device=logits.device).masked_scatter(colour_mask.unsqueeze(-1), logits.float())
         color = rendering.composite_background(
-            rendering.accumulate(weights, rgb_pad), acc, self.field.background(directions)
+            rendering.accumulate(weights, rgb_pad), acc, field.background(directions)
         )
         # Eq. 3 with detached weights: the semantic loss reaches only F_s (and background logits)
         sem_weights = weights.detach()
         sem_logits = rendering.composite_background(
             rendering.accumulate(sem_weights, sem_pad), sem_weights.sum(-1),
-            self.field.background_logits.expand(n, c),
+            field.background_logits.expand(n, c),
         )
         return {
             "rgb": color,
@@ -145,6 +164,7 @@ class SRFModel(nn.Module):
             "depth": rendering.expected_depth(weights, samples.t_mid),
             "accumulation": acc,
             "samples": int(rays.numel()),
+            "shaded": int(shade_rays.numel()),
         }
 
     @torch.no_grad()

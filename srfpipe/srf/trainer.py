@@ -5,7 +5,12 @@ batch of rays from the training views per step (every `evaluate.holdout_every`-t
 out). Checkpoints (`step-000001000.pt`, plain tensor dicts read with weights_only=True) are
 written every `checkpoint_every` steps beside the output, and a re-run resumes from the latest
 one whose fingerprint (options, model config, inputs) matches; ray sampling draws from a
-generator seeded by (seed, step), so a resumed run ends with the same weights on the CPU.
+generator seeded by (seed, step), so a resumed run ends with the same weights on the CPU
+(bit-identical with one thread; with several, some CPU kernels order their float sums
+differently from run to run, resumed or not).
+With `time_budget` > 0 the run also stops when that many training seconds have passed, and the
+learning-rate decay follows whichever of steps or seconds is further along; such a run depends
+on the machine's speed, so the resume guarantee holds only for runs that finish by iterations.
 """
 
 from __future__ import annotations
@@ -65,9 +70,33 @@ def step_generator(seed: int, step: int, device="cpu"):
     return torch.Generator(device=device).manual_seed(int.from_bytes(digest[:8], "little") >> 1)
 
 
-def learning_rate(step: int, iterations: int, lr: float, lr_final: float) -> float:
-    """Exponential decay from lr to lr_final over the run."""
-    return lr * (lr_final / lr) ** min(step / max(iterations, 1), 1.0)
+def learning_rate(progress: float, lr: float, lr_final: float) -> float:
+    """Exponential decay from lr (progress 0) to lr_final (progress 1)."""
+    return lr * (lr_final / lr) ** min(max(progress, 0.0), 1.0)
+
+
+def training_progress(step: int, iterations: int, seconds: float, time_budget: float) -> float:
+    """How far the run is: by steps, or by the time budget when that comes first."""
+    progress = step / max(iterations, 1)
+    if time_budget > 0:
+        progress = max(progress, seconds / time_budget)
+    return progress
+
+
+def parameter_groups(model, options: dict) -> list[dict]:
+    """Adam groups: dense grid tables learn `grid_lr_scale` times faster (DVGO uses 1e-1 for its
+    grids): one Adam step moves a grid value by at most ~lr, and a cell of fog has to fall by
+    several units of log-density before the occupancy grid can skip it."""
+    import torch
+
+    grids = [m.table for m in model.modules() if type(m).__name__ == "DenseGrid"]
+    grid_ids = {id(p) for p in grids}
+    others = [p for p in model.parameters() if id(p) not in grid_ids]
+    scale = float(options.get("grid_lr_scale", 10.0))
+    groups = [{"params": others, "lr_scale": 1.0}]
+    if grids:
+        groups.append({"params": grids, "lr_scale": scale})
+    return groups
 
 
 def fingerprint(options: dict, model_config: dict, inputs: list[dict]) -> str:
@@ -221,7 +250,7 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
                                 data.count, device)
     model = SRFModel(config, device).to(device)
     fused = device.type in ("cpu", "cuda")
-    optimizer = torch.optim.Adam(model.parameters(), lr=float(options["lr"]), eps=1e-15, fused=fused)
+    optimizer = torch.optim.Adam(parameter_groups(model, options), lr=float(options["lr"]), eps=1e-15, fused=fused)
     scaler_needed = False
     autocast, precision = autocast_context(device, options.get("precision", "auto"))
     if precision == "fp16" and device.type == "cuda":
@@ -231,7 +260,7 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
     inputs = [{"path": str(p), "created": read_provenance(p).get("created")} for p in (images, labels)]
     fp = fingerprint(options, config, inputs + [{"holdout_every": holdout_every}])
     ckpt_dir = Path(checkpoints) if checkpoints else out.with_name(out.name.removesuffix(".zarr") + ".ckpt")
-    curve = {k: [] for k in ("step", "seconds", "loss", "photometric", "semantic", "psnr", "samples_per_ray", "occupied")}
+    curve = {k: [] for k in ("step", "seconds", "loss", "photometric", "semantic", "psnr", "samples_per_ray", "shaded_per_ray", "occupied")}
     eval_curve = {k: [] for k in ("step", "seconds", "psnr", "miou", "miou_gt")}
     start_step, train_seconds = 0, 0.0
     state = latest_checkpoint(ckpt_dir, fp)
@@ -251,8 +280,10 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
     checkpoint_every = int(options.get("checkpoint_every", 500))
     log_every = int(options.get("log_every", 25))
     eval_every = int(options.get("eval_every", 0))
+    time_budget = float(options.get("time_budget", 0))
     lr, lr_final = float(options["lr"]), float(options.get("lr_final", options["lr"] * 0.1))
     scale = scene_scale(data.scene_from_world)
+    iterations_done = iterations
     model.train()
     bar = tqdm(range(start_step, iterations), initial=start_step, total=iterations, desc="train",
                dynamic_ncols=True, mininterval=1.0)
@@ -261,9 +292,10 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
             tick = time.perf_counter()
             generator = step_generator(seed, step)
             if step > 0 and step % update_every == 0:
-                model.occupancy.update(lambda x: model.field.density(x)[0], generator, all_cells=step < warmup)
+                model.occupancy.update(model.field.sigma, generator, all_cells=step < warmup)
             for group in optimizer.param_groups:
-                group["lr"] = learning_rate(step, iterations, lr, lr_final)
+                progress = training_progress(step, iterations, train_seconds, time_budget)
+                group["lr"] = learning_rate(progress, lr, lr_final) * group["lr_scale"]
             origins, directions, image, rgb, labels_batch = sample_batch(data, train_views, batch, generator, device)
             jitter = torch.rand(batch, generator=generator).to(device)
             with autocast:
@@ -286,12 +318,14 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
                     "photometric": photo, "semantic": float(parts["semantic"].detach()),
                     "psnr": losses.psnr_from_mse(photo / 3.0),
                     "samples_per_ray": outputs["samples"] / batch,
+                    "shaded_per_ray": outputs.get("shaded", outputs["samples"]) / batch,
                     "occupied": model.occupancy.occupied_fraction(),
                 }
                 for key, value in record.items():
                     curve[key].append(value)
                 bar.set_postfix(loss=f"{record['loss']:.4f}", psnr=f"{record['psnr']:.2f}",
                                 spr=f"{record['samples_per_ray']:.1f}")
+                log.debug("step %d: %s", done, record)
                 if log_file:
                     log_file.write(json.dumps(record) + "\n")
                     log_file.flush()
@@ -306,6 +340,18 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
                 log.info("step %d held-out %s", done, result)
                 if log_file:
                     log_file.write(json.dumps({"step": done, "seconds": train_seconds, "heldout": result}) + "\n")
+            if time_budget and train_seconds >= time_budget and done < iterations:
+                log.info("time budget of %.0f s reached at step %d", time_budget, done)
+                if eval_every and eval_curve["step"] and eval_curve["step"][-1] != done:
+                    model.eval()
+                    result = quick_eval(model, data, heldout_views, device)
+                    model.train()
+                    eval_curve["step"].append(done)
+                    eval_curve["seconds"].append(train_seconds)
+                    for key in ("psnr", "miou", "miou_gt"):
+                        eval_curve[key].append(result.get(key, float("nan")))
+                iterations_done = done
+                break
             if checkpoint_every and done % checkpoint_every == 0 and done < iterations:
                 save_checkpoint(ckpt_dir, {
                     "step": done, "fingerprint": fp, "model": model.state_dict(),
@@ -318,7 +364,7 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
             log_file.close()
 
     model.eval()
-    summary = {"iterations": iterations, "train_seconds": train_seconds, "precision": precision,
+    summary = {"iterations": iterations_done, "train_seconds": train_seconds, "precision": precision,
                "device": str(device)}
     io.write_srf(
         out, model, config=options, inputs=[images, labels], curve=curve,
@@ -326,7 +372,7 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
         classes=data.classes, scene_from_world=data.scene_from_world, world_from_scene=data.world_from_scene,
         bounds_world=data.bounds_world, scene_scale=scale, holdout_every=holdout_every,
         train_views=train_views, heldout_views=heldout_views, train_seconds=train_seconds,
-        precision=precision, device=str(device), fingerprint=fp, resumed_from_step=resumed_from,
+        precision=precision, device=str(device), fingerprint=fp, iterations_done=iterations_done, resumed_from_step=resumed_from,
         final=({k: curve[k][-1] for k in curve} if curve["step"] else {}),
     )
     if not options.get("keep_checkpoints", False) and ckpt_dir.is_dir():
