@@ -107,6 +107,14 @@ def load_posed_images(images_path, labels_path=None) -> PosedImages:
             )
         if "label" in lgroup:
             label = np.asarray(lgroup["label"][...])
+            # label values follow the config's prompt order (a dropped class leaves a gap):
+            # renumber them 1..C in the order of `classes`, like the SRF's heads
+            values = lattrs.get("class_values") or {name: i + 1 for i, name in enumerate(classes)}
+            lookup = np.zeros(256, dtype=np.uint8)
+            for i, name in enumerate(classes):
+                if name in values:
+                    lookup[int(values[name])] = i + 1
+            label = lookup[label]
     return PosedImages(
         images=torch.from_numpy(images),
         multihot=None if multihot is None else torch.from_numpy(multihot),
