@@ -184,7 +184,8 @@ class OccupancyGrid(nn.Module):
         inside = (u.abs() <= 1.0).all(dim=-1)
         result = self.binary0[self._index0(u)] & inside
         if self.contraction:
-            result = torch.where(inside, result, self.binary1[self._index1(contract(u))])
+            outside = (~inside).nonzero().squeeze(1)  # contract only what lies outside the box
+            result[outside] = self.binary1[self._index1(contract(u[outside]))]
         return result
 
     def _cell_points(self, level: int, cells: torch.Tensor, generator) -> torch.Tensor:
