@@ -52,7 +52,8 @@ def write_workdir(workdir: Path, orchard: dict) -> None:
 
 
 def run_snakemake(workdir: Path, cores: int) -> float:
-    targets = [str(workdir / "results" / scene / "poses.zarr") for scene in ("refined", "perturbed")]
+    # relative to the work directory (-d): the rules' outputs are relative patterns
+    targets = [f"results/{scene}/poses.zarr" for scene in ("refined", "perturbed")]
     # targets first: --quiet takes a variable number of values
     command = [sys.executable, "-m", "snakemake", *targets, "-s", str(REPO / "Snakefile"), "-d", str(workdir),
                "--cores", str(cores), "--quiet", "rules"]

@@ -40,7 +40,7 @@ LOOSE_ANGLE_DEG = 8.0  # first triangulation: the given poses may be this far of
 LOOSE_REPROJ_PX = 24.0
 FILTER_REPROJ_PX = 4.0  # COLMAP's default outlier threshold
 FILTER_MIN_TRI_ANGLE_DEG = 1.5
-MIN_OBSERVATIONS = 50  # fewer observed points than this: the image keeps its given pose
+MIN_OBSERVATIONS = 100  # fewer observed points than this: the image keeps its given pose (see refine_poses)
 
 
 @dataclass
@@ -123,6 +123,8 @@ def _match(database_path: Path, matcher: str, n_images: int, scene_size: float, 
 
     options = pycolmap.FeatureMatchingOptions()
     options.num_threads = threads
+    # after RANSAC, match again along the epipolar geometry: doubles the inliers on foliage
+    options.guided_matching = True
     device = pycolmap.Device.cpu
     if matcher == "exhaustive":
         pycolmap.match_exhaustive(str(database_path), matching_options=options, device=device)
