@@ -50,12 +50,15 @@ def read_srf(path, device="cpu"):
     if attrs.get("format") != FORMAT:
         raise ValueError(f"{path}: unknown SRF format {attrs.get('format')!r}, this srfpipe reads {FORMAT}")
     config = attrs["model_config"]
-    for key in ("inner", "outer"):  # weights are in the torch layout
+    weights = group["weights"]
+    for key in ("inner", "outer"):  # the torch layout, unless tiny-cuda-nn wrote the table
         if config.get(key):
-            config[key] = dict(config[key], prefer_tcnn=False)
+            tcnn = f"field.{key}.encoding.params" in weights
+            if tcnn and torch.device(device).type != "cuda":
+                raise ValueError(f"{path}: trained with tiny-cuda-nn; load it on a CUDA device")
+            config[key] = dict(config[key], prefer_tcnn=tcnn)
     model = SRFModel(config, device)
     state = model.state_dict()
-    weights = group["weights"]
     loaded = {}
     for key, tensor in state.items():
         if key not in weights:
