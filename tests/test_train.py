@@ -157,3 +157,23 @@ def test_bad_inputs_name_the_file(scene, tmp_path):
 
     with pytest.raises(ArtifactError, match="missing.zarr"):
         train(images, tmp_path / "missing.zarr", tmp_path / "x.zarr", tiny_options(), holdout_every=5)
+
+
+@pytest.mark.workflow
+def test_snakemake_tiny_orchard_to_srf_and_eval(workflow):
+    from tests.conftest import TINY_ORCHARD
+
+    scene = {**TINY_ORCHARD, "train": tiny_options(iterations=20, checkpoint_every=10, eval_every=10),
+             "evaluate": {"holdout_every": 4}}
+    workflow.write_scene("tiny", scene)
+    workflow.run("results/tiny/eval")
+    root = workflow.root / "results" / "tiny"
+    srf = SemanticRadianceField.load(root / "srf.zarr", device="cpu")
+    assert srf.classes and srf.attrs["holdout_every"] == 4 and srf.attrs["iterations_done"] == 20
+    assert not (root / "srf.ckpt").exists(), "checkpoints are removed after a finished run"
+    metrics = json.loads((root / "eval" / "metrics.json").read_text())
+    assert metrics["views"] == len(srf.attrs["heldout_views"]) and np.isfinite(metrics["psnr"])
+    assert 0 <= metrics["miou_gt"] <= 1 and len(list((root / "eval" / "renders").glob("*.png"))) == metrics["views"]
+    for rule in ("train", "evaluate"):
+        assert (workflow.root / "logs" / "tiny" / f"{rule}.log").exists()
+    assert (workflow.root / "logs" / "tiny" / "train_metrics.jsonl").read_text().strip()
