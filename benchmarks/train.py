@@ -119,7 +119,9 @@ def main() -> int:
 
     if not args.skip_other:
         other = "hash" if default_encoding == "dense" else "dense"
-        options = dict(train_opts, encoding=other, time_budget=budget, iterations=100000)
+        # the hash grid takes many times longer per step on the CPU: evaluate it more often
+        options = dict(train_opts, encoding=other, time_budget=budget, iterations=100000,
+                       eval_every=max(train_opts["eval_every"] // 10, 5))
         other_out = work / "results" / f"orchard_{other}" / "srf.zarr"
         run(["srfpipe", "train", "--images", str(results / "images.zarr"), "--labels", str(results / "labels.zarr"),
              "--out", str(other_out), "--threads", "2", "--scene", str(work / "config" / "scenes" / "orchard.yaml"),

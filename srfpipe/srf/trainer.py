@@ -342,7 +342,7 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
                     log_file.write(json.dumps({"step": done, "seconds": train_seconds, "heldout": result}) + "\n")
             if time_budget and train_seconds >= time_budget and done < iterations:
                 log.info("time budget of %.0f s reached at step %d", time_budget, done)
-                if eval_every and eval_curve["step"] and eval_curve["step"][-1] != done:
+                if eval_every and (not eval_curve["step"] or eval_curve["step"][-1] != done):
                     model.eval()
                     result = quick_eval(model, data, heldout_views, device)
                     model.train()
