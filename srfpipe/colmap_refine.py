@@ -15,6 +15,9 @@ intrinsics held fixed), so this is "point triangulator + bundle adjuster", not S
 5. Bundle adjustment leaves the gauge (scale, rotation, position of the world) free, so the result
    is mapped back by the similarity that best aligns the refined cameras (centres and axes) to the
    given ones: the world frame (and its units) of the capture is kept.
+6. An image that ends up observing fewer than `MIN_OBSERVATIONS` points keeps its given pose:
+   on the orchard, such images (a few dozen points on one branch) come out of bundle adjustment
+   worse than they went in, while images with a few hundred points come out several times better.
 
 Reprojection errors (pixels) after step 3 ("before", poses as given) and after step 4 ("after")
 are reported in `stats`, with the numbers of points and observations.
