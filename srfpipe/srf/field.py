@@ -154,7 +154,11 @@ class SemanticField(nn.Module):
         self.color_mlp = mlp(geo + self.sh_degree**2 + appearance_dim, hidden, 3,
                              layers=int(c.get("color_layers", 2)))
         self.num_classes = int(c["num_classes"])
-        self.semantic_mlp = mlp(geo, hidden, self.num_classes)
+        # F_s reads h.detach() and, optionally, a frequency encoding of the (contracted) position:
+        # with a dense grid h is the colour features only, and green leaves and green grass share
+        # colours; the position is not a parameter, so geometry stays out of reach of L_sem.
+        self.semantic_octaves = int(c.get("semantic_octaves", 0))
+        self.semantic_mlp = mlp(geo + 6 * self.semantic_octaves, hidden, self.num_classes)
         self.background_mlp = mlp(self.sh_degree**2, 32, 3)
         # background logits: rays that leave the field see "no class" unless learned otherwise
         self.background_logits = nn.Parameter(torch.full((self.num_classes,), -2.0))
@@ -235,9 +239,23 @@ class SemanticField(nn.Module):
             ray_term = ray_term[ray_index]
         return torch.sigmoid(rest(h @ first.weight[:, :geo].T + ray_term))
 
-    def semantics(self, h: torch.Tensor) -> torch.Tensor:
-        """F_s: C independent logits (M, C) from h.detach(): no semantic gradient reaches geometry."""
-        return self.semantic_mlp(h.detach())
+    def semantics(self, h: torch.Tensor, x: torch.Tensor | None = None) -> torch.Tensor:
+        """F_s: C independent logits (M, C) from h.detach() (and the position x when the field
+        was built with `semantic_octaves`): no semantic gradient reaches the geometry."""
+        inputs = [h.detach()]
+        if self.semantic_octaves:
+            if x is None:
+                raise ValueError("this field's semantic head needs the sample positions")
+            inputs.append(self.position_encoding(x))
+        return self.semantic_mlp(torch.cat(inputs, dim=-1))
+
+    def position_encoding(self, x: torch.Tensor) -> torch.Tensor:
+        """sin/cos of the contracted box coordinates at `semantic_octaves` octaves (M, 6 * octaves)."""
+        u = self.box_coordinates(x)
+        v = contract(u) * 0.5 if self.contraction else u.clamp(-1.0, 1.0)
+        scales = (2.0 ** torch.arange(self.semantic_octaves, device=x.device, dtype=torch.float32)) * math.pi
+        angles = (v.unsqueeze(-1) * scales).reshape(x.shape[0], -1)
+        return torch.cat([torch.sin(angles), torch.cos(angles)], dim=-1)
 
     def background(self, directions: torch.Tensor) -> torch.Tensor:
         """Colour (R, 3) seen along directions that leave the field (sky)."""

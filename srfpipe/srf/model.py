@@ -76,6 +76,7 @@ def build_model_config(options: dict, bounds_world, scene_from_world, classes: l
         "appearance_dim": int(options.get("appearance_dim", 0)), "num_images": int(num_images),
         "density_bias": density_bias, "density_grid": density_grid,
         "color_layers": int(options.get("color_layers", 2)),
+        "semantic_octaves": int(options.get("semantic_octaves", 4)),
         "color_threshold": float(options.get("color_threshold", 1e-4)),
         "detail_scene": detail_scene,
         "sampler": {
@@ -140,12 +141,13 @@ class SRFModel(nn.Module):
             significant = (weights.detach() > self.color_threshold) & mask
             shade = significant[mask]
             shade_rays = rays[shade]
-            h = field.latent(points[shade])
+            shade_points = points[shade]
+            h = field.latent(shade_points)
             colour_mask = significant
         else:
-            shade_rays, colour_mask = rays, mask
+            shade_rays, colour_mask, shade_points = rays, mask, points
         rgb = field.color(h, directions, image_index, ray_index=shade_rays)
-        logits = field.semantics(h)
+        logits = field.semantics(h, shade_points)
         c = logits.shape[-1]
         rgb_pad = torch.zeros(n, k, 3, device=rgb.device).masked_scatter(colour_mask.unsqueeze(-1), rgb.float())
         sem_pad = torch.zeros(n, k, c, device=logits.device).masked_scatter(colour_mask.unsqueeze(-1), logits.float())

@@ -97,7 +97,7 @@ class SemanticRadianceField:
             for start in range(0, points.shape[0], self.batch_size):
                 x = self._to_scene(points[start:start + self.batch_size])
                 _, h = self.model.field.density(x)
-                out[start:start + len(x)] = self.model.field.semantics(h).float().sigmoid().cpu().numpy()
+                out[start:start + len(x)] = self.model.field.semantics(h, x).float().sigmoid().cpu().numpy()
         return out
 
     def density(self, points_world: np.ndarray) -> np.ndarray:

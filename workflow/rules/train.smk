@@ -1,6 +1,9 @@
 # Train the semantic radiance field (srf.zarr) and evaluate it on held-out views (eval/).
 # Checkpoints live beside the output ({scene}/srf.ckpt/), so a killed training job resumes
 # when the rule runs again; the trainer removes them after success.
+# threads: 1 by default. On a shared 2-core machine, two torch threads made a training step ~7x
+# slower whenever any other process held a core (every small op waits for the descheduled
+# thread); raise it with `--set-threads train=N` on a dedicated many-core machine.
 
 
 def holdout_every(wildcards):
@@ -22,7 +25,7 @@ rule train:
         metrics="logs/{scene}/train_metrics.jsonl",
     benchmark:
         "benchmarks/runs/{scene}/train.tsv"
-    threads: 2
+    threads: 1
     resources:
         mem_mb=8000,
         runtime=120,
@@ -46,7 +49,7 @@ rule evaluate:
         "logs/{scene}/evaluate.log",
     benchmark:
         "benchmarks/runs/{scene}/evaluate.tsv"
-    threads: 2
+    threads: 1
     resources:
         mem_mb=4000,
         runtime=30,
