@@ -90,6 +90,31 @@ def provenance(stage: str, config: dict | None, inputs: list[str | Path] | None,
 
 
 @contextmanager
+def atomic_directory(path: str | Path) -> Iterator[Path]:
+    """Yield a hidden temporary sibling of `path` to fill; it becomes `path` only on success.
+
+    An older `path` is moved aside first and deleted after the rename, so a failed re-run leaves
+    the previous output intact and an interrupted one leaves nothing that looks complete.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.partial-{uuid.uuid4().hex[:8]}")
+    tmp.mkdir()
+    try:
+        yield tmp
+        old = None
+        if path.exists():
+            old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex[:8]}")
+            os.replace(path, old)
+        os.replace(tmp, path)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+@contextmanager
 def create_artifact(
     path: str | Path,
     stage: str,
@@ -103,22 +128,13 @@ def create_artifact(
     then it is marked complete and renamed to `path` (replacing an older artifact). On an error
     the partial directory is deleted and the error propagates.
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.partial-{uuid.uuid4().hex[:8]}")
-    group = zarr.open_group(str(tmp), mode="w")
-    group.attrs[NAMESPACE] = provenance(stage, config, inputs, **extra)
-    try:
+    with atomic_directory(path) as tmp:
+        group = zarr.open_group(str(tmp), mode="w")
+        group.attrs[NAMESPACE] = provenance(stage, config, inputs, **extra)
         yield group
         meta = dict(group.attrs[NAMESPACE])
         meta["complete"] = True
         group.attrs[NAMESPACE] = _jsonable(meta)
-        if path.exists():
-            shutil.rmtree(path)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
 
 
 def update_attrs(group: zarr.Group, **values) -> None:

@@ -22,14 +22,12 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import shutil
 import time
-import uuid
 from pathlib import Path
 
 import numpy as np
 
+from srfpipe.artifacts import atomic_directory
 from srfpipe.config import add_options_arguments, section_defaults, stage_options, validate_scene
 
 log = logging.getLogger(__name__)
@@ -144,17 +142,6 @@ def _tree_bounds(tree) -> list[list[float]]:
     return [lo.tolist(), hi.tolist()]
 
 
-def _replace_dir(tmp: Path, out: Path) -> None:
-    """Move the finished temp folder into place; an older output is removed only after that."""
-    old = None
-    if out.exists():
-        old = out.with_name(f".{out.name}.old-{uuid.uuid4().hex[:8]}")
-        os.replace(out, old)
-    os.replace(tmp, out)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
-
-
 # ----------------------------------------------------------------------------- entry points
 
 
@@ -188,9 +175,7 @@ def generate_orchard(out_dir: str | Path, progress: bool = True, **options) -> P
     names = [f"frame_{i:05d}" for i in range(len(poses))]
     renderer = OrchardRenderer(tree, params["seed"], sun)
 
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp-{uuid.uuid4().hex[:8]}")
-    try:
+    with atomic_directory(out) as tmp:
         gt = tmp / "ground_truth"
         for folder in (tmp / "images", gt / "labels", gt / "depth", gt / "meshes"):
             folder.mkdir(parents=True)
@@ -226,10 +211,6 @@ def generate_orchard(out_dir: str | Path, progress: bool = True, **options) -> P
             "class_pixel_counts": dict(zip(CLASSES, class_pixels.tolist())),
         }
         (gt / "scene.json").write_text(json.dumps(scene, indent=1))
-        _replace_dir(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     seconds = time.perf_counter() - started
     log.info(
         "orchard seed %d: %d segments, %d leaves, %d apples; %d views of %dx%d in %.1f s -> %s",
