@@ -5,7 +5,7 @@
 1. Builds training scenes through the Snakemake workflow itself (orchard seeds 101-108, never the
    demo's seed 0; 24-48 apples), up to images.zarr, so the network sees exactly what the demo's segment rule
    sees: 640x480 renders downscaled by 4 with INTER_AREA, labels from `ground_truth/labels`.
-2. Trains a small U-Net (`TinyUNet`, ~0.6 M parameters) with one sigmoid output per class
+2. Trains a small U-Net (`TinyUNet`, ~1 M parameters) with one sigmoid output per class
    (multi-label, as the paper's independent heads) towards each class's *coverage* of the pixel
    (area fraction from the full-resolution ground truth): BCE with soft targets plus a soft-Dice
    term, which keeps thin branches and few-pixel apples from drowning in background. So
@@ -38,7 +38,7 @@ PAD_MULTIPLE = 8
 REPO = Path(__file__).resolve().parents[2]
 
 
-def build_model(width: int = 24):
+def build_model(width: int = 32):
     """A tiny U-Net: three 2x downsamplings, skip connections at every scale, 3 logit maps."""
     import torch
     from torch import nn
@@ -247,7 +247,43 @@ def train(images: np.ndarray, targets: np.ndarray, val_images, val_targets, epoc
     return model.eval(), history
 
 
-def export_onnx(model, path: Path, metadata: dict) -> None:
+def with_flip_averaging(proto, image: str = "image", logits: str = "logits"):
+    """Wrap an exported segmenter so it returns the mean of its logits for x and mirrored x.
+
+    The mirrored copy rides in the same batch (Concat, one pass, Split), so the weights are
+    stored once. Mirroring is a symmetry of the task (see the training augmentation); averaging
+    the two answers removes some of the network's left/right idiosyncrasies at object edges.
+    """
+    import onnx
+    from onnx import TensorProto, helper
+
+    graph = proto.graph
+    for node in graph.node:
+        node.input[:] = ["tta_pair" if n == image else n for n in node.input]
+        node.output[:] = ["tta_raw" if n == logits else n for n in node.output]
+    flip = {"starts": [-1], "ends": [-(2**63)], "axes": [3], "steps": [-1]}
+    consts = [helper.make_tensor(f"tta_{k}", TensorProto.INT64, [1], v) for k, v in flip.items()]
+    half = helper.make_tensor("tta_half", TensorProto.FLOAT, [], [0.5])
+    slice_inputs = [f"tta_{k}" for k in flip]
+    before = [
+        helper.make_node("Slice", [image, *slice_inputs], ["tta_mirrored"]),
+        helper.make_node("Concat", [image, "tta_mirrored"], ["tta_pair"], axis=0),
+    ]
+    after = [
+        helper.make_node("Split", ["tta_raw"], ["tta_a", "tta_b"], axis=0),
+        helper.make_node("Slice", ["tta_b", *slice_inputs], ["tta_b_back"]),
+        helper.make_node("Add", ["tta_a", "tta_b_back"], ["tta_sum"]),
+        helper.make_node("Mul", ["tta_sum", "tta_half"], [logits]),
+    ]
+    nodes = before + list(graph.node) + after
+    del graph.node[:]
+    graph.node.extend(nodes)
+    graph.initializer.extend([*consts, half])
+    onnx.checker.check_model(proto)
+    return proto
+
+
+def export_onnx(model, path: Path, metadata: dict, flip_average: bool = True) -> None:
     import warnings
 
     import onnx
@@ -263,6 +299,8 @@ def export_onnx(model, path: Path, metadata: dict) -> None:
                           "logits": {0: "batch", 2: "height", 3: "width"}},
         )
     proto = onnx.load(str(path))
+    if flip_average:
+        proto = with_flip_averaging(proto)
     onnx.helper.set_model_props(proto, {k: v if isinstance(v, str) else json.dumps(v) for k, v in metadata.items()})
     onnx.checker.check_model(proto)
     onnx.save(proto, str(path))
@@ -277,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--epochs", type=int, default=14)
     parser.add_argument("--batch-size", type=int, default=16)
     parser.add_argument("--lr", type=float, default=4e-3)
-    parser.add_argument("--width", type=int, default=24, help="channels at full resolution")
+    parser.add_argument("--width", type=int, default=32, help="channels at full resolution")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args(argv)
@@ -296,13 +334,14 @@ def main(argv: list[str] | None = None) -> int:
              len(val_images), VALIDATION_SEED)
     model, history = train(images, targets, val_images, val_targets, args.epochs, args.batch_size, args.lr,
                            args.width, args.seed)
+    torch.save(model.state_dict(), args.workdir / "orchard_segmenter.pt")  # for re-exports; not shipped
     onnx_path = args.out / "orchard_segmenter.onnx"
     export_onnx(model, onnx_path, {"classes": CLASSES, "activation": "sigmoid", "pad_multiple": PAD_MULTIPLE,
                                    "producer": "srfpipe.segment.train_builtin"})
     card = {
         "file": onnx_path.name,
         "description": "Built-in orchard segmenter: tiny U-Net, one sigmoid logit map per class "
-                       "(multi-label). Input 'image' (B, 3, H, W) float RGB in [0, 1], H and W padded "
+                       "(multi-label), logits averaged over the image and its mirror image. Input 'image' (B, 3, H, W) float RGB in [0, 1], H and W padded "
                        "to a multiple of 8; output 'logits' (B, 3, H, W).",
         "classes": CLASSES,
         "parameters": int(sum(p.numel() for p in model.parameters())),
