@@ -11,9 +11,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import shutil
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -81,18 +78,11 @@ def depth_image(depth: np.ndarray, near: float, far: float) -> np.ndarray:
     return np.where(valid[..., None], coloured, 0).astype(np.uint8)
 
 
-def _atomic_folder(out: Path):
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.partial-{uuid.uuid4().hex[:8]}")
-    tmp.mkdir()
-    return tmp
-
-
 def evaluate(images, labels, srf, out, options: dict, device="auto") -> dict:
     """Compute the metrics and renders; write them to `out` atomically; return the metrics."""
     import cv2
 
-    from srfpipe.artifacts import meta, open_artifact
+    from srfpipe.artifacts import atomic_directory, meta, open_artifact
     from srfpipe.srf import metrics
     from srfpipe.srf.data import load_posed_images, split_views
     from srfpipe.srf.query import SemanticRadianceField
@@ -118,8 +108,7 @@ def evaluate(images, labels, srf, out, options: dict, device="auto") -> dict:
     conf_gt = np.zeros((c + 1, c + 1), np.int64) if data.gt_label is not None else None
     per_view, sq_err, sq_err_obj, obj_pixels = [], 0.0, 0.0, 0
     # bottom row of each figure: the captured image | reference labels | render opacity
-    tmp = _atomic_folder(out)
-    try:
+    with atomic_directory(out) as tmp:
         (tmp / "renders").mkdir()
         for index in heldout:
             pose_world = world_from_scene_pose(world_from_scene, data.poses_scene[index].numpy())
@@ -168,12 +157,6 @@ def evaluate(images, labels, srf, out, options: dict, device="auto") -> dict:
             result["miou_gt"] = float(np.nanmean(iou_gt))
             result["miou_gt_classes"] = float(np.nanmean(iou_gt[1:]))
         (tmp / "metrics.json").write_text(json.dumps(_clean(result), indent=2))
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
     log.info("psnr %.2f ssim %.3f miou %.3f", result["psnr"], result["ssim"], result["miou"])
     return result
 
