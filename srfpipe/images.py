@@ -88,6 +88,22 @@ def read_rgb(path: Path) -> np.ndarray:
     return cv2.cvtColor(image[..., :3], cv2.COLOR_BGR2RGB)
 
 
+def downscale_labels(labels: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Downscale a class-id image by area majority: each output pixel takes the class covering
+    most of its footprint. Nearest-neighbour sampling would keep one sub-pixel in factor^2, a
+    coin toss wherever an apple or a leaf covers part of the pixel."""
+    import cv2
+
+    if labels.shape == (height, width):
+        return labels.astype(np.uint8)
+    classes = np.unique(labels)
+    coverage = np.stack([
+        cv2.resize((labels == value).astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
+        for value in classes
+    ])
+    return classes[np.argmax(coverage, axis=0)].astype(np.uint8)
+
+
 def _ground_truth_files(ground_truth: Path, image_paths: list[str]) -> dict[str, list[Path]] | None:
     """labels/<stem>.png and depth/<stem>.npy per frame, when the capture has ground truth."""
     stems = [Path(p).stem for p in image_paths]
@@ -184,7 +200,10 @@ def downscale_images(poses_path: str | Path, options: dict, out: str | Path, pro
                     raise ValueError(f"{gt_path}: {kind} is {data.shape[1]}x{data.shape[0]}, the image is {w}x{h}")
                 # nearest: class ids and depths must not be blended across edges
                 data = undistort(data, intrinsics[i], distortion[i], cv2.INTER_NEAREST)
-                array[i] = cv2.resize(data, (width, height), interpolation=cv2.INTER_NEAREST_EXACT)
+                if kind == "labels":
+                    array[i] = downscale_labels(data, width, height)
+                else:
+                    array[i] = cv2.resize(data, (width, height), interpolation=cv2.INTER_NEAREST_EXACT)
         update_attrs(
             group,
             names=info["names"],

@@ -144,7 +144,24 @@ def test_orchard_ground_truth_is_downscaled(tmp_path):
     assert group["ground_truth/labels"].chunks == (1, 12, 16)
     assert set(np.unique(labels)) <= {0, 1, 2, 3} and (labels > 0).any()
     full = cv2.imread(str(capture / "ground_truth" / "labels" / "frame_00005.png"), cv2.IMREAD_UNCHANGED)
-    np.testing.assert_array_equal(labels[5], full[2::4, 2::4])  # nearest: the sample nearest each block centre
+    # labels by area majority: the class covering most of each 4x4 block
+    counts = np.stack([(full == c).reshape(12, 4, 16, 4).sum(axis=(1, 3)) for c in range(4)])
+    majority = counts.max(axis=0)
+    assert np.all(counts[labels[5], np.arange(12)[:, None], np.arange(16)] == majority)
     full_depth = np.load(capture / "ground_truth" / "depth" / "frame_00005.npy")
     np.testing.assert_array_equal(depth[5], full_depth[2::4, 2::4])
     assert meta(group)["ground_truth"] == str((capture / "ground_truth").resolve())
+
+
+def test_ground_truth_labels_downscale_by_area_majority():
+    from srfpipe.images import downscale_labels
+
+    labels = np.zeros((4, 8), np.uint8)
+    labels[:, :4] = 3          # left block: all leaf...
+    labels[:2, :3] = 1         # ...but 6 of its 16 pixels are apple: leaf still covers most
+    labels[:, 4:] = 2          # right block: 9 of 16 pixels branch, 7 background
+    labels[:2, 4:] = 0
+    labels[1, 7] = 2
+    assert downscale_labels(labels, 2, 1).tolist() == [[3, 2]]
+    labels[:3, :3] = 1         # 9 of 16 apple now
+    assert downscale_labels(labels, 2, 1).tolist() == [[1, 2]]
