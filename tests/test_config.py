@@ -51,3 +51,45 @@ def test_missing_scene_file(tmp_path):
 
 def test_section_defaults():
     assert section_defaults("poses")["refine"] == "none"
+
+
+SCHEMA_KEYWORDS = {
+    "$schema", "description", "type", "properties", "additionalProperties", "default", "enum", "const",
+    "items", "minItems", "maxItems", "minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum",
+    "pattern", "required", "if", "then", "else", "not", "oneOf", "anyOf", "allOf", "uniqueItems",
+    "minLength", "maxLength", "format", "propertyNames", "minProperties",
+}
+
+
+def _schemas_in(node):
+    if isinstance(node, dict):
+        yield node
+        for key in ("properties",):
+            for sub in node.get(key, {}).values():
+                yield from _schemas_in(sub)
+        for key in ("items", "additionalProperties", "if", "then", "else", "not"):
+            if isinstance(node.get(key), dict):
+                yield from _schemas_in(node[key])
+        for key in ("oneOf", "anyOf", "allOf"):
+            for sub in node.get(key, []):
+                yield from _schemas_in(sub)
+
+
+def test_schema_uses_only_known_keywords():
+    """A YAML slip (an unquoted comma in a flow mapping) turns prose into a silent keyword."""
+    from srfpipe.config import load_schema
+
+    for schema in _schemas_in(load_schema()):
+        unknown = set(schema) - SCHEMA_KEYWORDS
+        assert not unknown, f"unknown schema keywords {unknown} in {schema.get('description', schema)}"
+
+
+def test_config_reference_is_up_to_date():
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+
+    result = subprocess.run([sys.executable, str(REPO / "scripts" / "config_docs.py"), "--check"],
+                            capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
