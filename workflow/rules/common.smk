@@ -29,7 +29,7 @@ SCENES = _load_scenes()
 SCENE_NAMES = config["scenes"] or sorted(SCENES)
 for _name in SCENE_NAMES:
     if _name not in SCENES:
-        raise WorkflowError(f"config scenes: no scene file {SCENES_DIR / (_name + '.yaml')}")
+        raise WorkflowError(f"config scenes: no scene file {SCENES_DIR / f'{_name}.yaml'}")
 
 
 wildcard_constraints:
