@@ -284,6 +284,18 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
     lr, lr_final = float(options["lr"]), float(options.get("lr_final", options["lr"] * 0.1))
     scale = scene_scale(data.scene_from_world)
     iterations_done = iterations
+
+    def record_heldout(done: int, seconds: float) -> dict:
+        """Evaluate the held-out views and append them to the quality-vs-time curve."""
+        model.eval()
+        result = quick_eval(model, data, heldout_views, device)
+        model.train()
+        eval_curve["step"].append(done)
+        eval_curve["seconds"].append(seconds)
+        for key in ("psnr", "miou", "miou_gt"):
+            eval_curve[key].append(result.get(key, float("nan")))
+        return result
+
     model.train()
     bar = tqdm(range(start_step, iterations), initial=start_step, total=iterations, desc="train",
                dynamic_ncols=True, mininterval=1.0)
@@ -330,26 +342,14 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
                     log_file.write(json.dumps(record) + "\n")
                     log_file.flush()
             if eval_every and (done % eval_every == 0 or done == iterations):
-                model.eval()
-                result = quick_eval(model, data, heldout_views, device)
-                model.train()
-                eval_curve["step"].append(done)
-                eval_curve["seconds"].append(train_seconds)
-                for key in ("psnr", "miou", "miou_gt"):
-                    eval_curve[key].append(result.get(key, float("nan")))
+                result = record_heldout(done, train_seconds)
                 log.info("step %d held-out %s", done, result)
                 if log_file:
                     log_file.write(json.dumps({"step": done, "seconds": train_seconds, "heldout": result}) + "\n")
             if time_budget and train_seconds >= time_budget and done < iterations:
                 log.info("time budget of %.0f s reached at step %d", time_budget, done)
                 if eval_every and (not eval_curve["step"] or eval_curve["step"][-1] != done):
-                    model.eval()
-                    result = quick_eval(model, data, heldout_views, device)
-                    model.train()
-                    eval_curve["step"].append(done)
-                    eval_curve["seconds"].append(train_seconds)
-                    for key in ("psnr", "miou", "miou_gt"):
-                        eval_curve[key].append(result.get(key, float("nan")))
+                    record_heldout(done, train_seconds)
                 iterations_done = done
                 break
             if checkpoint_every and done % checkpoint_every == 0 and done < iterations:
