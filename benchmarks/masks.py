@@ -1,13 +1,10 @@
 """Benchmark: the built-in segmenter's masks against ground truth on the demo orchard.
 
 Builds the demo orchard (seed 0, which the shipped model never saw) to labels.zarr through the
-Snakemake workflow and measures, per class, the IoU of the composited label image against
-`ground_truth/labels` of images.zarr (iou_<class>: one full-resolution sample per pixel, what
-images.zarr stores) and against the class covering most of each pixel's footprint
-(iou_<class>_area_majority), pooled over all frames. ceiling_iou_<class> is the IoU of the exact
-area-majority labels against the one-sample labels: the most any segmenter of the downscaled
-image can expect on iou_<class>. Writes
-benchmarks/results/masks.json with iou_apple, iou_branch, iou_leaf.
+Snakemake workflow and measures, per class, the IoU (and precision, recall) of the composited
+label image against `ground_truth/labels` of images.zarr (each pixel: the class covering most of
+its full-resolution footprint), pooled over all frames. Writes benchmarks/results/masks.json with
+iou_apple, iou_branch, iou_leaf.
 
     python benchmarks/masks.py            # the demo scene: 80 views, 640x480 -> 160x120
     python benchmarks/masks.py --quick    # 16 views
@@ -63,11 +60,8 @@ def segment_seconds(workdir: Path) -> float:
 def measure(workdir: Path) -> dict:
     from srfpipe.artifacts import meta, open_artifact
 
-    from srfpipe.segment.train_builtin import area_majority_labels
-
     root = workdir / "results" / "orchard"
     truth = np.asarray(open_artifact(root / "images.zarr")["ground_truth/labels"][:])
-    majority = area_majority_labels(root / "images.zarr")
     labels = open_artifact(root / "labels.zarr", stage="composite")
     label = np.asarray(labels["label"][:])
     values = meta(labels)["class_values"]
@@ -77,16 +71,9 @@ def measure(workdir: Path) -> dict:
         gt = truth == true_value
         union = np.logical_or(pred, gt).sum()
         metrics[f"iou_{name}"] = round(float(np.logical_and(pred, gt).sum() / union), 4) if union else 1.0
+        metrics[f"precision_{name}"] = round(float(np.logical_and(pred, gt).sum() / max(pred.sum(), 1)), 4)
+        metrics[f"recall_{name}"] = round(float(np.logical_and(pred, gt).sum() / max(gt.sum(), 1)), 4)
         metrics[f"gt_fraction_{name}"] = round(float(gt.mean()), 5)
-        # against the class covering most of each pixel (see area_majority_labels)
-        gt = majority == true_value
-        union = np.logical_or(pred, gt).sum()
-        metrics[f"iou_{name}_area_majority"] = round(float(np.logical_and(pred, gt).sum() / union), 4) if union else 1.0
-        # how well the exact area-majority labels themselves score against the one-sample labels:
-        # what a perfect segmenter of the downscaled image can reach on iou_<class>
-        sampled = truth == true_value
-        union = np.logical_or(gt, sampled).sum()
-        metrics[f"ceiling_iou_{name}"] = round(float(np.logical_and(gt, sampled).sum() / union), 4) if union else 1.0
     metrics["frames"] = int(label.shape[0])
     metrics["resolution"] = [int(label.shape[2]), int(label.shape[1])]
     return metrics
@@ -118,10 +105,10 @@ def main(argv=None) -> int:
         "machine": {"platform": platform.platform(), "python": platform.python_version(),
                     "cpus": os.cpu_count(), "processor": platform.processor()},
     }
-    print(f"{'class':<8}{'IoU':>8}{'ceiling':>9}{'IoU (area majority)':>21}{'target':>8}")
+    print(f"{'class':<8}{'IoU':>8}{'precision':>11}{'recall':>8}{'target':>8}")
     for name in CLASSES:
-        print(f"{name:<8}{result['iou_' + name]:>8.3f}{result['ceiling_iou_' + name]:>9.3f}"
-              f"{result[f'iou_{name}_area_majority']:>21.3f}{result['targets']['iou_' + name]:>8.2f}")
+        print(f"{name:<8}{result['iou_' + name]:>8.3f}{result['precision_' + name]:>11.3f}"
+              f"{result['recall_' + name]:>8.3f}{result['targets']['iou_' + name]:>8.2f}")
     print(f"{metrics['frames']} frames at {metrics['resolution'][0]}x{metrics['resolution'][1]}, "
           f"segment jobs {metrics['segment_seconds']:.1f} s, build {seconds:.0f} s")
     args.out.parent.mkdir(parents=True, exist_ok=True)

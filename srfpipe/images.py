@@ -90,8 +90,9 @@ def read_rgb(path: Path) -> np.ndarray:
 
 def downscale_labels(labels: np.ndarray, width: int, height: int) -> np.ndarray:
     """Downscale a class-id image by area majority: each output pixel takes the class covering
-    most of its footprint. Nearest-neighbour sampling would keep one sub-pixel in factor^2, a
-    coin toss wherever an apple or a leaf covers part of the pixel."""
+    most of its footprint; on a tie the lower class value (background first) wins. Nearest-neighbour
+    sampling would keep one sub-pixel in factor^2, a coin toss wherever an apple or a leaf covers
+    part of the pixel."""
     import cv2
 
     if labels.shape == (height, width):

@@ -380,21 +380,16 @@ def test_orchard_masks_match_ground_truth_and_new_prompts_run_alone(workflow):
     target = "results/small/labels.zarr"
     workflow.run(target)
 
-    from srfpipe.segment.train_builtin import area_majority_labels
-
     root = workflow.root / "results" / "small"
-    sampled = np.asarray(open_artifact(root / "images.zarr")["ground_truth/labels"][:])
-    truth = area_majority_labels(root / "images.zarr")
+    truth = np.asarray(open_artifact(root / "images.zarr")["ground_truth/labels"][:])
     labels = open_artifact(root / "labels.zarr", stage="composite")
     assert meta(labels)["classes"] == ["apple", "leaf"]
     assert meta(labels)["class_values"] == {"apple": 1, "leaf": 2}  # the scene's prompt order
     label = np.asarray(labels["label"][:])
     # The built-in model on the demo tree (seed 0, never seen in training), 4 views only, against
-    # the class covering most of each pixel; the one-sample labels of images.zarr are a coin toss
-    # at mixed pixels, so they cap any model lower.
+    # the class covering most of each pixel (images.zarr's ground truth)
     assert iou(label == 1, truth == 1) >= 0.8
     assert iou(label == 2, truth == 3) >= 0.85
-    assert iou(label == 1, sampled == 1) >= 0.65 and iou(label == 2, sampled == 3) >= 0.7
     assert (workflow.root / "logs/small/segment_apple.log").exists()
 
     # adding a prompt runs that prompt's segment job and the composite, nothing else
