@@ -124,7 +124,7 @@ def main() -> int:
                        eval_every=max(train_opts["eval_every"] // 10, 5))
         other_out = work / "results" / f"orchard_{other}" / "srf.zarr"
         run(["srfpipe", "train", "--images", str(results / "images.zarr"), "--labels", str(results / "labels.zarr"),
-             "--out", str(other_out), "--threads", "1", "--scene", str(work / "config" / "scenes" / "orchard.yaml"),
+             "--out", str(other_out), "--threads", "2", "--scene", str(work / "config" / "scenes" / "orchard.yaml"),
              "--options", json.dumps(options)], log)
         curves[other] = curve_of(other_out)
         curves[other]["iterations"] = read_provenance(other_out).get("iterations_done")
@@ -149,7 +149,7 @@ def main() -> int:
         "quick": args.quick,
         "config": {"orchard": orchard, "train": srf_meta.get("config"), "holdout_every": srf_meta.get("holdout_every")},
         "machine": {"platform": platform.platform(), "python": platform.python_version(),
-                    "cpus": os.cpu_count(), "torch_threads": 1},
+                    "cpus": os.cpu_count(), "torch_threads": 2},
     }
     name = "train_quick" if args.quick else "train"
     (RESULTS / f"{name}.json").write_text(json.dumps(report, indent=2))

@@ -1,9 +1,10 @@
 # Train the semantic radiance field (srf.zarr) and evaluate it on held-out views (eval/).
 # Checkpoints live beside the output ({scene}/srf.ckpt/), so a killed training job resumes
 # when the rule runs again; the trainer removes them after success.
-# threads: 1 by default. On a shared 2-core machine, two torch threads made a training step ~7x
-# slower whenever any other process held a core (every small op waits for the descheduled
-# thread); raise it with `--set-threads train=N` on a dedicated many-core machine.
+# threads: 2, the cores of the machines we measure on (a 4096-ray step of the demo: 0.54 s on one
+# thread, 0.39 s on two). Snakemake never runs other jobs on those cores, but another process
+# outside it that shares them makes a two-thread step several times slower (every small op
+# waits for the descheduled thread): then use `--set-threads train=1`.
 
 
 def holdout_every(wildcards):
@@ -25,7 +26,7 @@ rule train:
         metrics="logs/{scene}/train_metrics.jsonl",
     benchmark:
         "benchmarks/runs/{scene}/train.tsv"
-    threads: 1
+    threads: 2
     resources:
         mem_mb=8000,
         runtime=120,
