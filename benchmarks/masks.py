@@ -69,10 +69,10 @@ def measure(workdir: Path) -> dict:
     for name, true_value in CLASSES.items():
         pred = label == values.get(name, -1)
         gt = truth == true_value
-        union = np.logical_or(pred, gt).sum()
-        metrics[f"iou_{name}"] = round(float(np.logical_and(pred, gt).sum() / union), 4) if union else 1.0
-        metrics[f"precision_{name}"] = round(float(np.logical_and(pred, gt).sum() / max(pred.sum(), 1)), 4)
-        metrics[f"recall_{name}"] = round(float(np.logical_and(pred, gt).sum() / max(gt.sum(), 1)), 4)
+        both, union = np.logical_and(pred, gt).sum(), np.logical_or(pred, gt).sum()
+        metrics[f"iou_{name}"] = round(float(both / union), 4) if union else 1.0
+        metrics[f"precision_{name}"] = round(float(both / max(pred.sum(), 1)), 4)
+        metrics[f"recall_{name}"] = round(float(both / max(gt.sum(), 1)), 4)
         metrics[f"gt_fraction_{name}"] = round(float(gt.mean()), 5)
     metrics["frames"] = int(label.shape[0])
     metrics["resolution"] = [int(label.shape[2]), int(label.shape[1])]

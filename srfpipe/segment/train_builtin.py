@@ -1,6 +1,6 @@
 """Train the built-in orchard segmenter and export it to srfpipe/models/ (reproducible, CPU).
 
-    flock /tmp/srfpipe-cpu.lock python -m srfpipe.segment.train_builtin --workdir /tmp/seg-train
+    python -m srfpipe.segment.train_builtin --workdir /tmp/seg-train
 
 1. Builds training scenes through the Snakemake workflow itself (orchard seeds 101-116, never the
    demo's seed 0; 24-48 apples), up to images.zarr, so the network sees exactly what the demo's segment rule
@@ -304,7 +304,7 @@ def main(argv: list[str] | None = None) -> int:
         # against images.zarr's ground_truth/labels of the validation seed, threshold 0.5
         "validation_iou": {k: round(v, 4) for k, v in history[-1].items() if k.startswith("iou_")},
         "history": history,
-        "reproduce": "flock /tmp/srfpipe-cpu.lock python -m srfpipe.segment.train_builtin --workdir /tmp/seg-train",
+        "reproduce": "python -m srfpipe.segment.train_builtin --workdir /tmp/seg-train",
         "versions": {"torch": torch.__version__},
     }
     (args.out / "orchard_segmenter.json").write_text(json.dumps(card, indent=1) + "\n")
