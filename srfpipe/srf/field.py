@@ -236,7 +236,9 @@ class SemanticField(nn.Module):
             per_ray.append(emb)
         ray_term = torch.cat(per_ray, dim=-1) @ first.weight[:, geo:].T + first.bias
         if ray_index is not None:
-            ray_term = ray_term[ray_index]
+            # index_select: its backward is an index_add_, ~15x faster on the CPU than the
+            # accumulating index_put_ behind ray_term[ray_index]
+            ray_term = ray_term.index_select(0, ray_index)
         return torch.sigmoid(rest(h @ first.weight[:, :geo].T + ray_term))
 
     def semantics(self, h: torch.Tensor, x: torch.Tensor | None = None) -> torch.Tensor:

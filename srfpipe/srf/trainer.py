@@ -227,13 +227,14 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
     from tqdm import tqdm
 
     from srfpipe.artifacts import read_provenance
-    from srfpipe.device import choose_device
+    from srfpipe.device import choose_device, keep_freed_memory
     from srfpipe.srf import io, losses
     from srfpipe.srf.data import load_posed_images, split_views
     from srfpipe.srf.model import SRFModel, build_model_config, scene_scale
 
     if threads:
         torch.set_num_threads(int(threads))
+    keep_freed_memory()
     out = Path(out)
     device = choose_device(options.get("device", "auto"))
     data = load_posed_images(images, labels)
