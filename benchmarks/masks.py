@@ -14,18 +14,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 import yaml
 
-REPO = Path(__file__).resolve().parent.parent
+from common import REPO, machine_info, result_path, rule_seconds, run_workflow, write_result, write_workdir
+
 CLASSES = {"apple": 1, "branch": 2, "leaf": 3}  # ground-truth label values
 
 
@@ -34,27 +31,6 @@ def scene_config(views: int) -> dict:
     demo.setdefault("orchard", {})["views"] = views
     demo.setdefault("segmentation", {})["prompts"] = list(CLASSES)
     return demo
-
-
-def build(workdir: Path, scene: dict) -> float:
-    (workdir / "config" / "scenes").mkdir(parents=True, exist_ok=True)
-    (workdir / "config" / "scenes" / "orchard.yaml").write_text(yaml.safe_dump(scene))
-    (workdir / "config" / "config.yaml").write_text(yaml.safe_dump(
-        {"scenes_dir": "config/scenes", "scenes": ["orchard"], "results_dir": "results", "final_artifact": "labels"}))
-    env = dict(os.environ, PATH=str(Path(sys.executable).parent) + os.pathsep + os.environ.get("PATH", ""))
-    started = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "-d", str(workdir),
-                    "--cores", "2", "results/orchard/labels.zarr"], check=True, env=env)
-    return time.perf_counter() - started
-
-
-def segment_seconds(workdir: Path) -> float:
-    """Wall time of the segment jobs, from Snakemake's benchmark files."""
-    total = 0.0
-    for path in (workdir / "benchmarks" / "runs" / "orchard").glob("segment_*.tsv"):
-        lines = path.read_text().splitlines()
-        total += float(lines[1].split("\t")[0])
-    return total
 
 
 def measure(workdir: Path) -> dict:
@@ -83,16 +59,17 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="16 views instead of the demo's 80")
     parser.add_argument("--workdir", type=Path, help="keep the Snakemake work directory here")
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "masks.json")
+    parser.add_argument("--out", type=Path, help="result file (default: benchmarks/results/masks[_quick].json)")
     args = parser.parse_args(argv)
 
     views = 16 if args.quick else 80
     scene = scene_config(views)
     with tempfile.TemporaryDirectory(prefix="srfpipe-masks-") as tmp:
         workdir = (args.workdir or Path(tmp)).resolve()
-        seconds = build(workdir, scene)
+        write_workdir(workdir, {"orchard": scene}, final_artifact="labels")
+        seconds = run_workflow(workdir, ["results/orchard/labels.zarr"])
         metrics = measure(workdir)
-        metrics["segment_seconds"] = round(segment_seconds(workdir), 2)
+        metrics["segment_seconds"] = round(rule_seconds(workdir, "orchard", "segment_*"), 2)
     model_card = json.loads((REPO / "srfpipe" / "models" / "orchard_segmenter.json").read_text())
     result = {
         **metrics,
@@ -102,8 +79,7 @@ def main(argv=None) -> int:
         "scene": scene,
         "model": {"file": model_card["file"], "parameters": model_card["parameters"],
                   "training_seeds": model_card["training"]["seeds"]},
-        "machine": {"platform": platform.platform(), "python": platform.python_version(),
-                    "cpus": os.cpu_count(), "processor": platform.processor()},
+        "machine": machine_info(cores=2),
     }
     print(f"{'class':<8}{'IoU':>8}{'precision':>11}{'recall':>8}{'target':>8}")
     for name in CLASSES:
@@ -111,8 +87,7 @@ def main(argv=None) -> int:
               f"{result['recall_' + name]:>8.3f}{result['targets']['iou_' + name]:>8.2f}")
     print(f"{metrics['frames']} frames at {metrics['resolution'][0]}x{metrics['resolution'][1]}, "
           f"segment jobs {metrics['segment_seconds']:.1f} s, build {seconds:.0f} s")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    write_result(args.out or result_path("masks", args.quick), result)
     return 0
 
 

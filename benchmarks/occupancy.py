@@ -24,9 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
-import subprocess
 import sys
 import tempfile
 import time
@@ -35,7 +32,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-REPO = Path(__file__).resolve().parent.parent
+from common import REPO, machine_info, result_path, rule_seconds, run_workflow, write_result, write_workdir
+
 MESH_CLASSES = {"apple": True, "branch": True, "leaf": False}  # name -> closed (fill the interior)
 
 
@@ -46,23 +44,6 @@ def scene_config(quick: bool, iterations: int) -> dict:
         scene.setdefault("occupancy", {})["voxel_size"] = 0.04
     scene.setdefault("train", {})["iterations"] = iterations
     return scene
-
-
-def build(workdir: Path, scene: dict) -> float:
-    (workdir / "config" / "scenes").mkdir(parents=True, exist_ok=True)
-    (workdir / "config" / "scenes" / "orchard.yaml").write_text(yaml.safe_dump(scene))
-    (workdir / "config" / "config.yaml").write_text(yaml.safe_dump(
-        {"scenes_dir": "config/scenes", "scenes": ["orchard"], "results_dir": "results", "final_artifact": "occupancy"}))
-    env = dict(os.environ, PATH=str(Path(sys.executable).parent) + os.pathsep + os.environ.get("PATH", ""))
-    started = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "-d", str(workdir),
-                    "--cores", "2", "results/orchard/occupancy.zarr"], check=True, env=env)
-    return time.perf_counter() - started
-
-
-def rule_seconds(workdir: Path, rule: str) -> float | None:
-    path = workdir / "benchmarks" / "runs" / "orchard" / f"{rule}.tsv"
-    return float(path.read_text().splitlines()[1].split("\t")[0]) if path.exists() else None
 
 
 def voxelize_mesh(path: Path, grid, closed: bool) -> np.ndarray:
@@ -190,7 +171,7 @@ def main(argv=None) -> int:
     parser.add_argument("--capture", type=Path, help="... and compare with this capture's ground_truth/")
     parser.add_argument("--voxel-size", type=float, default=None, help="with --srf: voxel size (default: schema)")
     parser.add_argument("--points", type=int, default=10_000_000, help="points per throughput batch")
-    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "occupancy.json")
+    parser.add_argument("--out", type=Path, help="result file (default: benchmarks/results/occupancy[_quick].json)")
     args = parser.parse_args(argv)
 
     from srfpipe.occupancy import OccupancyCache, distill
@@ -213,9 +194,10 @@ def main(argv=None) -> int:
         scene = {"srf": str(srf_path), "occupancy": options}
     else:
         scene = scene_config(args.quick, iterations)
-        timings["build_s"] = round(build(workdir, scene), 1)
+        write_workdir(workdir, {"orchard": scene}, final_artifact="occupancy")
+        timings["build_s"] = round(run_workflow(workdir, ["results/orchard/occupancy.zarr"]), 1)
         for rule in ("train", "distill"):
-            timings[f"{rule}_s"] = rule_seconds(workdir, rule)
+            timings[f"{rule}_s"] = rule_seconds(workdir, "orchard", rule)
         root = workdir / "results" / "orchard"
         srf_path, ground_truth, cache_path = root / "srf.zarr", root / "capture" / "ground_truth", root / "occupancy.zarr"
 
@@ -236,18 +218,15 @@ def main(argv=None) -> int:
         **timings,
         "quick": args.quick,
         "config": {"scene": scene, "occupancy": cache.attrs["config"]},
-        "machine": {"platform": platform.platform(), "python": platform.python_version(),
-                    "cpus": os.cpu_count(), "processor": platform.processor()},
+        "machine": machine_info(cores=2),
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    write_result(args.out or result_path("occupancy", args.quick), result)
     keys = ["iou_apple", "iou_branch", "iou_leaf", "apple_precision", "apple_recall", "branch_recall",
             "lookups_per_s", "trilinear_per_s", "network_density_per_s", "cache_vs_network_speedup"]
     width = max(map(len, keys))
     for key in keys:
         value = result[key]
         print(f"{key:<{width}}  {value:,.4g}" if value < 1000 else f"{key:<{width}}  {value / 1e6:,.1f} M")
-    print(f"wrote {args.out}")
     return 0
 
 

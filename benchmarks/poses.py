@@ -19,57 +19,25 @@ refinement does not lower both errors.
 from __future__ import annotations
 
 import argparse
-import csv
-import json
-import os
-import platform
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
-import yaml
 
-REPO = Path(__file__).resolve().parent.parent
-RESULT = REPO / "benchmarks" / "results" / "poses.json"
+from common import machine_info, result_path, rule_seconds, run_workflow, write_result, write_workdir
+
 PERTURBATION = {"perturb_rot_deg": 1.0, "perturb_trans_frac": 0.02, "perturb_seed": 0}
 
 
-def write_workdir(workdir: Path, orchard: dict) -> None:
-    scenes = workdir / "config" / "scenes"
-    scenes.mkdir(parents=True, exist_ok=True)
-    config = {"scenes_dir": "config/scenes", "scenes": ["refined", "perturbed"], "results_dir": "results",
-              "final_artifact": "poses"}
-    (workdir / "config" / "config.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
+def scenes(orchard: dict) -> dict:
+    """Two scenes from one capture: refined with COLMAP, and the same perturbed poses unrefined."""
     refined = {"source": {"format": "orchard"}, "orchard": orchard,
                "poses": {"refine": "colmap", **PERTURBATION}}
     # the same capture (the refined scene's generated folder), imported as plain nerfstudio data
     perturbed = {"source": {"format": "nerfstudio", "path": "results/refined/capture"},
                  "poses": {"refine": "none", **PERTURBATION}}
-    (scenes / "refined.yaml").write_text(yaml.safe_dump(refined, sort_keys=False))
-    (scenes / "perturbed.yaml").write_text(yaml.safe_dump(perturbed, sort_keys=False))
-
-
-def run_snakemake(workdir: Path, cores: int) -> float:
-    # relative to the work directory (-d): the rules' outputs are relative patterns
-    targets = [f"results/{scene}/poses.zarr" for scene in ("refined", "perturbed")]
-    # targets first: --quiet takes a variable number of values
-    command = [sys.executable, "-m", "snakemake", *targets, "-s", str(REPO / "Snakefile"), "-d", str(workdir),
-               "--cores", str(cores), "--quiet", "rules"]
-    started = time.perf_counter()
-    subprocess.run(command, check=True)
-    return time.perf_counter() - started
-
-
-def rule_seconds(workdir: Path, scene: str, rule: str) -> float | None:
-    path = workdir / "benchmarks" / "runs" / scene / f"{rule}.tsv"
-    if not path.exists():
-        return None
-    with path.open() as handle:
-        row = next(csv.DictReader(handle, delimiter="\t"))
-    return float(row["s"])
+    return {"refined": refined, "perturbed": perturbed}
 
 
 def evaluate(workdir: Path) -> dict:
@@ -87,27 +55,22 @@ def evaluate(workdir: Path) -> dict:
     return results
 
 
-def machine_info() -> dict:
-    import pycolmap
-
-    return {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-            "cpu_count": os.cpu_count(), "python": platform.python_version(), "pycolmap": pycolmap.__version__}
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="48 views instead of the default orchard's 80")
     parser.add_argument("--workdir", type=Path, default=None, help="scratch folder (default: a temporary one)")
     parser.add_argument("--cores", type=int, default=2)
-    parser.add_argument("--out", type=Path, default=RESULT)
+    parser.add_argument("--out", type=Path, help="result file (default: benchmarks/results/poses[_quick].json)")
     args = parser.parse_args(argv)
+    import pycolmap
 
     orchard = {"views": 48, "width": 640, "height": 480} if args.quick else {}
     with tempfile.TemporaryDirectory(prefix="srfpipe-bench-poses-") as tmp:
         workdir = args.workdir or Path(tmp)
-        write_workdir(workdir, orchard)
-        wall = run_snakemake(workdir, args.cores)
+        write_workdir(workdir, scenes(orchard), final_artifact="poses")
+        wall = run_workflow(workdir, [f"results/{scene}/poses.zarr" for scene in ("refined", "perturbed")],
+                            args.cores, extra=("--quiet", "rules"))
         results = evaluate(workdir)
         refined = results["refined"]
         report = {
@@ -131,13 +94,12 @@ def main(argv=None) -> int:
                        "translation_error": "camera-centre error / largest side of bounds_world, after the "
                                             "similarity that best aligns the cameras (centres and axes, "
                                             "srfpipe.poses.align_poses) to the ground truth"},
-            "machine": machine_info(),
+            "machine": machine_info(cores=args.cores, pycolmap=pycolmap.__version__),
         }
     lowered = report["rot_err_deg_after"] < report["rot_err_deg_before"] and \
         report["trans_err_after"] < report["trans_err_before"]
     report["refinement_lowers_error"] = lowered
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n")
+    out = write_result(args.out or result_path("poses", args.quick), report)
 
     print(f"{'':24}{'before':>12}{'after':>12}")
     print(f"{'rotation error (deg)':24}{report['rot_err_deg_before']:12.4f}{report['rot_err_deg_after']:12.4f}")
@@ -145,7 +107,7 @@ def main(argv=None) -> int:
     print(f"{'reprojection error (px)':24}{report['reprojection_error_before_px']:12.3f}"
           f"{report['reprojection_error_after_px']:12.3f}")
     print(f"points {report['num_points3D']}, images refined {report['num_images_refined']}/{report['num_images']}, "
-          f"refine rule {report['refine_rule_seconds']} s -> {args.out}")
+          f"refine rule {report['refine_rule_seconds']} s -> {out}")
     return 0 if lowered else 1
 
 

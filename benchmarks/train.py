@@ -16,24 +16,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
-import yaml
 
-REPO = Path(__file__).resolve().parent.parent
-RESULTS = REPO / "benchmarks" / "results"
-
-
-def run(cmd: list[str], log: Path) -> None:
-    print("$", " ".join(cmd), flush=True)
-    with open(log, "a") as handle:
-        subprocess.run(cmd, check=True, stdout=handle, stderr=subprocess.STDOUT)
+from common import REPO, machine_info, result_path, run_workflow, snakemake_env, write_result, write_workdir
 
 
 def curve_of(srf_path: Path) -> dict:
@@ -89,8 +78,6 @@ def main() -> int:
     args = parser.parse_args()
 
     work = Path(args.workdir).resolve()
-    (work / "config" / "scenes").mkdir(parents=True, exist_ok=True)
-    (work / "logs").mkdir(exist_ok=True)
     orchard = {"views": 80, "width": 640, "height": 480}
     train_opts: dict = {"eval_every": 250}
     budget = args.budget
@@ -100,15 +87,9 @@ def main() -> int:
         budget = min(budget, 60.0)
     scene = {"source": {"format": "orchard"}, "orchard": orchard, "images": {"downscale": 4 if not args.quick else 2},
              "train": train_opts}
-    (work / "config" / "config.yaml").write_text(yaml.safe_dump(
-        {"scenes_dir": "config/scenes", "scenes": ["orchard"], "results_dir": "results", "final_artifact": "eval"}))
-    (work / "config" / "scenes" / "orchard.yaml").write_text(yaml.safe_dump(scene))
+    write_workdir(work, {"orchard": scene}, final_artifact="eval")
     log = work / "logs" / "benchmark.log"
-
-    started = time.time()
-    run([sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "-d", str(work), "--cores", "2",
-         "results/orchard/eval"], log)
-    pipeline_seconds = time.time() - started
+    pipeline_seconds = run_workflow(work, ["results/orchard/eval"], log=log)
     results = work / "results" / "orchard"
     metrics = json.loads((results / "eval" / "metrics.json").read_text())
     from srfpipe.artifacts import read_provenance
@@ -123,13 +104,15 @@ def main() -> int:
         options = dict(train_opts, encoding=other, time_budget=budget, iterations=100000,
                        eval_every=max(train_opts["eval_every"] // 10, 5))
         other_out = work / "results" / f"orchard_{other}" / "srf.zarr"
-        run(["srfpipe", "train", "--images", str(results / "images.zarr"), "--labels", str(results / "labels.zarr"),
-             "--out", str(other_out), "--threads", "2", "--scene", str(work / "config" / "scenes" / "orchard.yaml"),
-             "--options", json.dumps(options)], log)
+        command = ["srfpipe", "train", "--images", str(results / "images.zarr"),
+                   "--labels", str(results / "labels.zarr"), "--out", str(other_out), "--threads", "2",
+                   "--scene", str(work / "config" / "scenes" / "orchard.yaml"), "--options", json.dumps(options)]
+        print("$", " ".join(command), flush=True)
+        with open(log, "a") as handle:
+            subprocess.run(command, check=True, stdout=handle, stderr=subprocess.STDOUT, env=snakemake_env())
         curves[other] = curve_of(other_out)
         curves[other]["iterations"] = read_provenance(other_out).get("iterations_done")
 
-    RESULTS.mkdir(parents=True, exist_ok=True)
     report = {
         "psnr": metrics["psnr"],
         "ssim": metrics["ssim"],
@@ -148,12 +131,10 @@ def main() -> int:
         "pipeline_seconds": pipeline_seconds,
         "quick": args.quick,
         "config": {"orchard": orchard, "train": srf_meta.get("config"), "holdout_every": srf_meta.get("holdout_every")},
-        "machine": {"platform": platform.platform(), "python": platform.python_version(),
-                    "cpus": os.cpu_count(), "torch_threads": 2},
+        "machine": machine_info(cores=2, torch_threads=2),
     }
-    name = "train_quick" if args.quick else "train"
-    (RESULTS / f"{name}.json").write_text(json.dumps(report, indent=2))
-    plot_curves(curves, RESULTS / f"{name}_curves.png")
+    out = write_result(result_path("train", args.quick), report)
+    plot_curves(curves, out.with_name(out.stem + "_curves.png"))
     print(f"{'metric':<16}{'value':>10}{'target':>10}")
     for key, target in (("psnr", ">= 27"), ("ssim", ""), ("miou", ">= 0.80"), ("train_seconds", "<= 600")):
         print(f"{key:<16}{report[key]:>10.3f}{target:>10}")

@@ -1,10 +1,11 @@
 # Train the semantic radiance field (srf.zarr) and evaluate it on held-out views (eval/).
 # Checkpoints live beside the output ({scene}/srf.ckpt/), so a killed training job resumes
 # when the rule runs again; the trainer removes them after success.
-# threads: 2, the cores of the machines we measure on (a 4096-ray step of the demo with a 64-cell
-# grid: 0.54 s on one thread, 0.39 s on two). Snakemake never runs other jobs on those cores, but another process
-# outside it that shares them makes a two-thread step several times slower (every small op
-# waits for the descheduled thread): then use `--set-threads train=1`.
+# threads: 2, the cores of the machines we measure on (a 4096-ray step of the demo, 96-cell grid,
+# ~52 samples per ray early in training: 0.48 s on one thread, 0.37 s on two). Snakemake never
+# runs other jobs on those cores, but another process outside it that shares them makes a
+# two-thread step several times slower (every small op waits for the descheduled thread): then
+# use `--set-threads train=1`.
 
 
 def holdout_every(wildcards):

@@ -1,0 +1,87 @@
+"""What every benchmark does: build scenes through the Snakemake workflow in a work directory,
+read the rules' run times, describe the machine and write benchmarks/results/NAME.json.
+
+The scripts import this as `common` (`python benchmarks/NAME.py` puts benchmarks/ on sys.path).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+REPO = Path(__file__).resolve().parent.parent
+RESULTS = REPO / "benchmarks" / "results"
+
+
+def write_workdir(workdir: Path, scenes: dict[str, dict], final_artifact: str) -> None:
+    """config/config.yaml listing `scenes` (name -> scene config) and config/scenes/NAME.yaml."""
+    folder = workdir / "config" / "scenes"
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, scene in scenes.items():
+        (folder / f"{name}.yaml").write_text(yaml.safe_dump(scene, sort_keys=False))
+    (workdir / "config" / "config.yaml").write_text(yaml.safe_dump(
+        {"scenes_dir": "config/scenes", "scenes": list(scenes), "results_dir": "results",
+         "final_artifact": final_artifact}, sort_keys=False))
+
+
+def snakemake_env() -> dict:
+    """The environment for Snakemake: this interpreter's `srfpipe` script first on PATH."""
+    return dict(os.environ, PATH=str(Path(sys.executable).parent) + os.pathsep + os.environ.get("PATH", ""))
+
+
+def run_workflow(workdir: Path, targets: list[str], cores: int = 2, log: Path | None = None,
+                 extra: tuple[str, ...] = ()) -> float:
+    """Build `targets` (paths relative to the work directory) with the repo's Snakefile; wall seconds.
+    With `log`, Snakemake's output is appended there instead of the terminal; `extra` are more
+    Snakemake arguments."""
+    # targets first: options such as --quiet take a variable number of values
+    command = [sys.executable, "-m", "snakemake", *targets, "-s", str(REPO / "Snakefile"), "-d", str(workdir),
+               "--cores", str(cores), *extra]
+    print("$", " ".join(command), flush=True)
+    started = time.perf_counter()
+    if log is None:
+        subprocess.run(command, check=True, env=snakemake_env())
+    else:
+        log.parent.mkdir(parents=True, exist_ok=True)
+        with open(log, "a") as handle:
+            subprocess.run(command, check=True, env=snakemake_env(), stdout=handle, stderr=subprocess.STDOUT)
+    return time.perf_counter() - started
+
+
+def rule_seconds(workdir: Path, scene: str, job: str) -> float | None:
+    """Wall seconds of the jobs whose Snakemake benchmark file is benchmarks/runs/SCENE/JOB.tsv
+    (`job` may be a glob, e.g. "segment_*": the jobs' times are summed); None if none ran."""
+    total, found = 0.0, False
+    for path in sorted((workdir / "benchmarks" / "runs" / scene).glob(f"{job}.tsv")):
+        with path.open() as handle:
+            total += float(next(csv.DictReader(handle, delimiter="\t"))["s"])
+        found = True
+    return total if found else None
+
+
+def machine_info(**extra) -> dict:
+    """Where a number was measured: platform, CPU, Python and torch versions, plus `extra`."""
+    import torch
+
+    return {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
+            "cpus": os.cpu_count(), "python": platform.python_version(), "torch": torch.__version__, **extra}
+
+
+def result_path(name: str, quick: bool) -> Path:
+    """benchmarks/results/NAME.json, or NAME_quick.json for a short run (never the committed numbers)."""
+    return RESULTS / f"{name}{'_quick' if quick else ''}.json"
+
+
+def write_result(path: Path, report: dict) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(report, indent=1) + "\n")
+    print(f"wrote {path}")
+    return path
