@@ -45,6 +45,11 @@ def run_workflow(workdir: Path, targets: list[str], cores: int = 2, log: Path | 
     # targets first: options such as --quiet take a variable number of values
     command = [sys.executable, "-m", "snakemake", *targets, "-s", str(REPO / "Snakefile"), "-d", str(workdir),
                "--cores", str(cores), *extra]
+    return run_command(command, log)
+
+
+def run_command(command: list[str], log: Path | None = None) -> float:
+    """Run `command` (echoed) with `snakemake_env()`, output appended to `log` if given; wall seconds."""
     print("$", " ".join(command), flush=True)
     started = time.perf_counter()
     if log is None:

@@ -16,13 +16,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from common import REPO, machine_info, result_path, run_workflow, snakemake_env, write_result, write_workdir
+from common import REPO, machine_info, result_path, run_command, run_workflow, write_result, write_workdir
 
 
 def curve_of(srf_path: Path) -> dict:
@@ -107,9 +106,7 @@ def main() -> int:
         command = ["srfpipe", "train", "--images", str(results / "images.zarr"),
                    "--labels", str(results / "labels.zarr"), "--out", str(other_out), "--threads", "2",
                    "--scene", str(work / "config" / "scenes" / "orchard.yaml"), "--options", json.dumps(options)]
-        print("$", " ".join(command), flush=True)
-        with open(log, "a") as handle:
-            subprocess.run(command, check=True, stdout=handle, stderr=subprocess.STDOUT, env=snakemake_env())
+        run_command(command, log)
         curves[other] = curve_of(other_out)
         curves[other]["iterations"] = read_provenance(other_out).get("iterations_done")
 

@@ -25,8 +25,9 @@ def keep_freed_memory() -> bool:
     A training step allocates and frees tensors the size of the dense grids (a 96^3 x 16 feature
     gradient is 57 MB). glibc serves every allocation above 32 MB with a fresh mmap and unmaps it
     on free, so each step page-faults that memory in again: zeroing such a buffer took 59 ms
-    instead of 17 ms here. Serving everything from the heap (no mmap) and never trimming it keeps
-    those pages resident. Returns False (and changes nothing) where glibc is not the C library.
+    instead of 17 ms here (one thread), and a demo training step 0.66 s instead of 0.43 s (two).
+    Serving everything from the heap (no mmap) and trimming it only above 1 GB keeps those pages
+    resident. Returns False (and changes nothing) where glibc is not the C library.
     """
     import ctypes
     import platform
