@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import logging
 import subprocess
 import sys
 from pathlib import Path
@@ -12,6 +13,8 @@ import pytest
 
 from srfpipe.artifacts import open_artifact, read_provenance
 from srfpipe.occupancy import AnalyticField, OccupancyCache, VoxelGrid, distill, max_density_in_cells, morton_decode
+from srfpipe.occupancy.distill import choose_voxel_size, resolve_options
+from srfpipe.occupancy.grid import voxel_counts, voxel_size_within
 
 CLASSES = ["apple", "branch", "leaf"]
 BOUNDS = np.array([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])
@@ -240,9 +243,129 @@ def test_cli_errors_name_the_problem(tmp_path):
     result = subprocess.run([sys.executable, "-m", "srfpipe.cli", "distill", "--srf", str(missing), "--out",
                              str(tmp_path / "o.zarr"), "--options", '{"supersample": 9}'], capture_output=True, text=True)
     assert result.returncode == 1 and "supersample" in result.stderr
-    with pytest.raises(ValueError, match="max_voxels"):
-        distill(sphere_field(), tmp_path / "big.zarr", {"voxel_size": 0.001}, progress=False)
-    assert not (tmp_path / "big.zarr").exists()
+
+
+# ------------------------------------------------------------------- any capture: units, classes
+
+
+def elongated_scene(scale: float) -> AnalyticField:
+    """An apple and a branch in a 1 x 0.25 x 0.25 box, everything (densities too) scaled by `scale`.
+
+    Density is per world unit, so a scene `scale` times larger has `1 / scale` the density for the
+    same opacity: the same matter measured in other units.
+    """
+    bounds = np.array([[-0.5, -0.125, -0.125], [0.5, 0.125, 0.125]]) * scale
+    field = AnalyticField(list(CLASSES), bounds, sigma=1000.0 / scale)
+    field.add_sphere(np.array([0.13, 0.01, -0.02]) * scale, 0.09 * scale, "apple")
+    field.add_capsule(np.array([-0.45, -0.1, 0.05]) * scale, np.array([0.4, 0.08, -0.06]) * scale, 0.013 * scale,
+                      "branch")
+    return field
+
+
+def test_default_grid_follows_the_scene_not_its_units(tmp_path):
+    results = {}
+    for scale in (1.0, 100.0, 0.01):
+        path = distill(elongated_scene(scale), tmp_path / f"x{scale}.zarr", {}, progress=False)
+        group, attrs = open_artifact(path, stage="distill"), read_provenance(path)
+        results[scale] = (group["occupancy"][...], group["class_occupancy"][...], group["distance"][...], attrs)
+    occupancy, class_occupancy, distance, attrs = results[1.0]
+    defaults = resolve_options({})
+    assert occupancy.shape == (34, 34, defaults["voxels_across"])  # the 1-unit axis holds voxels_across
+    assert 0.03 < occupancy.mean() < 0.2 and class_occupancy[1].any()
+    for scale in (100.0, 0.01):
+        occ, cls_occ, dist, scaled = results[scale]
+        assert occ.shape == occupancy.shape
+        assert occ.mean() == occupancy.mean() and np.array_equal(cls_occ, class_occupancy)
+        assert scaled["grid"]["voxel_size"] == pytest.approx(attrs["grid"]["voxel_size"] * scale)
+        assert scaled["distance"]["truncation"] == pytest.approx(attrs["distance"]["truncation"] * scale)
+        np.testing.assert_allclose(dist / scale, distance, rtol=1e-5, atol=1e-6 * attrs["grid"]["voxel_size"])
+    assert attrs["resolution"]["asked_from"] == "voxels_across" and not attrs["resolution"]["coarsened"]
+    assert attrs["distance"]["truncation_voxels"] == pytest.approx(defaults["truncation_voxels"])
+    assert attrs["unit"] is None and attrs["unit_source"] == "unknown"  # nothing said which unit
+
+
+def test_world_unit_overrides_stay_available(tmp_path):
+    path = distill(elongated_scene(1.0), tmp_path / "o.zarr",
+                   {"voxel_size": 0.02, "distance_truncation": 0.1, "unit": "meter"}, progress=False)
+    attrs = read_provenance(path)
+    assert attrs["grid"]["voxel_size"] == 0.02 and attrs["grid"]["shape"] == [13, 13, 50]
+    assert attrs["resolution"]["asked_from"] == "voxel_size" and attrs["resolution"]["voxels_across"] is None
+    assert attrs["distance"]["truncation"] == 0.1 and attrs["distance"]["truncation_from"] == "distance_truncation"
+    assert attrs["unit"] == "meter" and attrs["unit_source"] == "config"
+    axes = dict(open_artifact(path)["pyramid"].attrs)["ome"]["multiscales"][0]["axes"]
+    assert [a.get("unit") for a in axes] == [None, "meter", "meter", "meter"]
+
+
+def test_unit_comes_from_the_field_when_it_knows(tmp_path):
+    field = elongated_scene(100.0)
+    field.unit = "centimeter"
+    path = distill(field, tmp_path / "cm.zarr", {"voxels_across": 20}, progress=False)
+    attrs = read_provenance(path)
+    assert attrs["unit"] == "centimeter" and attrs["unit_source"] == "field"
+    assert attrs["grid"]["unit"] == "centimeter"
+    path = distill(field, tmp_path / "m.zarr", {"voxels_across": 20, "unit": "meter"}, progress=False)
+    assert read_provenance(path)["unit"] == "meter"  # the config overrides the data
+
+
+def test_too_large_grid_is_coarsened_with_a_warning(tmp_path, caplog):
+    caplog.set_level(logging.WARNING, logger="srfpipe.occupancy.distill")
+    path = distill(sphere_field(), tmp_path / "big.zarr", {"voxel_size": 0.001, "max_voxels": 40**3}, progress=False)
+    attrs = read_provenance(path)
+    assert attrs["grid"]["shape"] == [40, 40, 40] and attrs["grid"]["voxel_size"] == pytest.approx(0.025)
+    resolution = attrs["resolution"]
+    assert resolution["coarsened"] and resolution["voxel_size_asked"] == 0.001
+    assert resolution["voxel_size"] == attrs["grid"]["voxel_size"] and "max_voxels 64000" in resolution["reason"]
+    warning = " ".join(r.getMessage() for r in caplog.records if r.levelno == logging.WARNING)
+    assert "voxel size 0.001" in warning and "1000 x 1000 x 1000" in warning and "used 0.025" in warning
+    assert attrs["distance"]["truncation"] == pytest.approx(15 * 0.025)  # relative to the voxel used
+    assert OccupancyCache.load(path).occupancy(CENTRE[None])[0]
+
+
+def test_the_scene_that_asked_for_billions_of_voxels_fits():
+    # the issue's capture: 128 units wide, cameras 100 units away, and a 0.02-unit voxel asked for
+    bounds = np.array([[-64.0, -64.0, -60.0], [64.0, 64.0, 99.25]])
+    options = resolve_options({"voxel_size": 0.02})
+    record = choose_voxel_size(bounds, options)
+    counts = voxel_counts(bounds[1] - bounds[0], record["voxel_size"])
+    assert record["coarsened"] and np.prod(counts) <= options["max_voxels"]
+    assert np.prod(voxel_counts(bounds[1] - bounds[0], record["voxel_size"] * (1 - 1e-6))) > options["max_voxels"]
+    default = choose_voxel_size(bounds, resolve_options({}))
+    assert not default["coarsened"] and default["voxel_size"] == pytest.approx(159.25 / options["voxels_across"])
+
+
+@pytest.mark.parametrize("extent, max_voxels", [((1.0, 0.3, 2.7), 1000), ((5.0, 5.0, 1e-3), 400),
+                                                ((3.0, 3.0, 3.0), 1), ((0.7, 11.0, 2.0), 123457)])
+def test_coarsened_voxel_is_the_finest_that_fits(extent, max_voxels):
+    bounds = np.array([[0.0, 0.0, 0.0], extent])
+    chosen = voxel_size_within(bounds, 1e-4, max_voxels)
+    assert np.prod(voxel_counts(extent, chosen)) <= max_voxels
+    assert np.prod(voxel_counts(extent, chosen * (1 - 1e-6))) > max_voxels
+    assert voxel_size_within(bounds, chosen * 2, max_voxels) == chosen * 2  # a size that fits is kept
+
+
+def test_field_without_classes_distills_density_and_occupancy_only(tmp_path, caplog):
+    caplog.set_level(logging.WARNING, logger="srfpipe.occupancy.distill")
+    field = AnalyticField([], BOUNDS).add_sphere(CENTRE, RADIUS, None)
+    path = distill(field, tmp_path / "o.zarr", {"voxels_across": 40}, progress=False)
+    assert not caplog.records, "the default avoid/reach classes are not worth a warning per class"
+    group, attrs = open_artifact(path, stage="distill"), read_provenance(path)
+    assert attrs["classes"] == [] and attrs["density_only"] and "no classes" in attrs["semantics"]
+    assert attrs["distance"]["classes"] == []
+    grid = tuple(attrs["grid"]["shape"])
+    for name in ("probability", "class_occupancy", "distance"):
+        assert group[name].shape == (0,) + grid, name
+    occupied = int(group["occupancy"][...].sum())
+    assert occupied == attrs["counts"]["occupied_voxels"] > 0
+    leaf_class = group["octree/leaf_class"][...]
+    assert len(leaf_class) == occupied and np.all(leaf_class == -1)
+    cache = OccupancyCache.load(path)
+    points = np.random.default_rng(6).uniform(-0.45, 0.45, size=(20000, 3))
+    truth = np.linalg.norm(points - CENTRE, axis=1) <= RADIUS
+    occupancy = cache.occupancy(points)
+    assert (truth & occupancy).sum() / (truth | occupancy).sum() > 0.85
+    assert cache.semantic(points).shape == (20000, 0)
+    t, hit = cache.raycast(np.array([[-2.0, CENTRE[1], CENTRE[2]]]), np.array([[1.0, 0.0, 0.0]]))
+    assert abs(t[0] - (2.0 + CENTRE[0] - RADIUS)) < 2 * 0.025 and hit[0] == -1
 
 
 PIPELINE_MODULES = ("srfpipe.scenes.orchard", "srfpipe.segment.composite", "srfpipe.srf.trainer", "srfpipe.srf.query")

@@ -1,8 +1,8 @@
 """Distill a trained semantic radiance field into the occupancy cache (occupancy.zarr), and query it.
 
 `srfpipe distill --srf results/S/srf.zarr --out results/S/occupancy.zarr` samples the field's
-density and per-class probabilities on a voxel grid covering the scene bounds (voxel size in world
-units from the scene's `occupancy` section) and writes, in bricks that store nothing for empty space:
+density and per-class probabilities on a voxel grid covering the scene bounds and writes, in bricks
+that store nothing for empty space (C may be 0: a field without classes gives density and occupancy only):
 
 | array | shape, dtype | meaning |
 |---|---|---|
@@ -14,7 +14,11 @@ units from the scene's `occupancy` section) and writes, in bricks that store not
 | `pyramid/s0..sN` | (1 + c, z, y, x) uint8 | OME-Zarr `multiscales`, max-pooled 2x; channel 0 = any class |
 | `octree/level_00..` | (n_l,) uint64 | sorted Morton codes of the occupied cells per level; `leaf_class` int8 |
 
-The `srfpipe` attributes hold the grid (origin, voxel size, `grid_from_world`), classes,
+Sizes follow the scene, whatever its units: by default the voxel is the largest bounds extent /
+`voxels_across` and the distance truncation `truncation_voxels` voxels; `voxel_size` and
+`distance_truncation` (world units) override them, and a grid above `max_voxels` gets coarser voxels
+(a warning). The `srfpipe` attributes hold the grid (origin, voxel size, `grid_from_world`), the
+`resolution` asked for and used, the world `unit` (config, else the field's, else unknown), classes,
 thresholds, distance classes and provenance. `OccupancyCache.load(path)` answers queries from it:
 points outside the grid are free space; NaN points raise ValueError.
 """

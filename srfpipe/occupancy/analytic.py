@@ -14,7 +14,10 @@ import numpy as np
 
 @dataclass
 class Primitive:
-    """A solid: a sphere (start == end) or a capsule (segment start-end swept by `radius`)."""
+    """A solid: a sphere (start == end) or a capsule (segment start-end swept by `radius`).
+
+    `class_index` -1: matter of no class (a field without semantics, or the ground).
+    """
 
     start: np.ndarray
     end: np.ndarray
@@ -39,22 +42,31 @@ class AnalyticField:
     """A union of primitives with constant density `sigma` inside and zero outside.
 
     `semantic` is one-hot: probability 1 for the class of the (first) primitive containing the
-    point, 0 everywhere else, including free space.
+    point, 0 everywhere else, including free space and primitives of no class (`class_name` None).
+    `unit` names the world unit when known (distillation records it).
     """
 
     classes: list[str]
     bounds_world: np.ndarray
     sigma: float = 1000.0  # per world unit: opaque well inside one voxel
     primitives: list[Primitive] = field(default_factory=list)
+    unit: str | None = None
 
-    def add_sphere(self, centre, radius: float, class_name: str) -> "AnalyticField":
+    def _class_index(self, class_name: str | None) -> int:
+        if class_name is None:
+            return -1
+        if class_name not in self.classes:
+            raise ValueError(f"unknown class {class_name!r}; the field has {self.classes}")
+        return self.classes.index(class_name)
+
+    def add_sphere(self, centre, radius: float, class_name: str | None) -> "AnalyticField":
         c = np.asarray(centre, dtype=np.float64)
-        self.primitives.append(Primitive(c, c.copy(), float(radius), self.classes.index(class_name)))
+        self.primitives.append(Primitive(c, c.copy(), float(radius), self._class_index(class_name)))
         return self
 
-    def add_capsule(self, start, end, radius: float, class_name: str) -> "AnalyticField":
+    def add_capsule(self, start, end, radius: float, class_name: str | None) -> "AnalyticField":
         self.primitives.append(Primitive(np.asarray(start, dtype=np.float64), np.asarray(end, dtype=np.float64),
-                                         float(radius), self.classes.index(class_name)))
+                                         float(radius), self._class_index(class_name)))
         return self
 
     def _owner(self, points_world) -> np.ndarray:
@@ -72,9 +84,10 @@ class AnalyticField:
     def semantic(self, points_world) -> np.ndarray:
         owner = self._owner(points_world)
         probs = np.zeros((len(owner), len(self.classes)), dtype=np.float32)
-        hit = owner >= 0
-        class_of = np.array([p.class_index for p in self.primitives], dtype=np.int64)
-        probs[np.flatnonzero(hit), class_of[owner[hit]]] = 1.0
+        class_of = np.array([p.class_index for p in self.primitives] + [-1], dtype=np.int64)
+        point_class = class_of[owner]  # owner -1 (free space) picks the appended -1
+        hit = point_class >= 0
+        probs[np.flatnonzero(hit), point_class[hit]] = 1.0
         return probs
 
     def signed_distance(self, points_world, class_name: str | None = None) -> np.ndarray:
@@ -82,6 +95,6 @@ class AnalyticField:
         points = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
         d = np.full(len(points), np.inf)
         for primitive in self.primitives:
-            if class_name is None or self.classes[primitive.class_index] == class_name:
+            if class_name is None or (primitive.class_index >= 0 and self.classes[primitive.class_index] == class_name):
                 d = np.minimum(d, primitive.signed_distance(points))
         return d

@@ -20,7 +20,7 @@ from typing import Callable, Protocol, Sequence, runtime_checkable
 import numpy as np
 from tqdm.auto import tqdm
 
-from srfpipe.occupancy.grid import VoxelGrid, morton_encode
+from srfpipe.occupancy.grid import VoxelGrid, check_bounds, morton_encode, voxel_counts, voxel_size_within
 
 log = logging.getLogger(__name__)
 
@@ -30,7 +30,11 @@ FORMAT_VERSION = 1
 
 @runtime_checkable
 class SemanticField(Protocol):
-    """What distillation needs from a field (a trained SRF or `AnalyticField`)."""
+    """What distillation needs from a field (a trained SRF or `AnalyticField`).
+
+    A field may also say in which unit its world frame is (`unit`, or `attrs["unit"]` as read
+    from srf.zarr); without one the cache's unit is unknown unless `occupancy.unit` is set.
+    """
 
     classes: Sequence[str]
     bounds_world: np.ndarray  # (2, 3) [[min xyz], [max xyz]]
@@ -205,6 +209,12 @@ def signed_distance_brick(occupancy_array, channel: int, grid: VoxelGrid, zyx, t
 
 def distance_classes(classes: Sequence[str], options: dict) -> list[tuple[str, str]]:
     """(class, role) for every class to avoid or reach that the field has, in config order."""
+    if not classes:
+        # a field without classes (a capture without masks) has nothing to name: one note, not one per class
+        if options["avoid"] or options["reach"]:
+            log.info("the field has no classes: no distance fields (occupancy.avoid %s, reach %s unused)",
+                     options["avoid"], options["reach"])
+        return []
     chosen = []
     for role in ("avoid", "reach"):
         for name in options[role]:
@@ -298,6 +308,54 @@ def resolve_options(options: dict | None) -> dict:
     return validate_scene({"occupancy": dict(options or {})}, "occupancy options")["occupancy"]
 
 
+# Sizes follow the scene (its bounds), never one scene's units: world-unit values are overrides.
+
+
+def choose_voxel_size(bounds_world, options: dict) -> dict:
+    """The voxel size asked for and the one used, and why they differ.
+
+    Asked: `voxel_size` (world units) when set, else the largest bounds extent / `voxels_across`.
+    Used: the asked size, or the finest coarser one whose grid holds at most `max_voxels` voxels
+    (with a warning), so that a scene in unexpected units still distills.
+    """
+    bounds = check_bounds(bounds_world)
+    extent = bounds[1] - bounds[0]
+    if options["voxel_size"] is not None:
+        asked, source = float(options["voxel_size"]), "voxel_size"
+    else:
+        asked, source = float(extent.max()) / options["voxels_across"], "voxels_across"
+    used = voxel_size_within(bounds, asked, options["max_voxels"])
+    record = {"voxel_size_asked": asked, "voxel_size": used, "asked_from": source,
+              "voxels_across": options["voxels_across"] if source == "voxels_across" else None,
+              "largest_extent": float(extent.max()), "max_voxels": options["max_voxels"],
+              "coarsened": used > asked, "reason": None}
+    if used > asked:
+        counts = voxel_counts(extent, asked)
+        record["reason"] = (f"voxel size {asked:.6g} (from {source}) over bounds {bounds.tolist()} gives "
+                            f"{' x '.join(map(str, counts.tolist()))} = {int(np.prod(counts))} voxels "
+                            f"> max_voxels {options['max_voxels']}; used {used:.6g}, the finest that fits")
+        log.warning("occupancy: %s", record["reason"])
+    return record
+
+
+def choose_truncation(voxel_size: float, options: dict) -> dict:
+    """The signed-distance truncation: `distance_truncation` (world units) when set, else
+    `truncation_voxels` voxels (the distances are only exact to about half a voxel anyway)."""
+    if options["distance_truncation"] is not None:
+        truncation, source = float(options["distance_truncation"]), "distance_truncation"
+    else:
+        truncation, source = float(options["truncation_voxels"]) * voxel_size, "truncation_voxels"
+    return {"truncation": truncation, "truncation_from": source, "truncation_voxels": truncation / voxel_size}
+
+
+def world_unit(field, options: dict) -> tuple[str | None, str]:
+    """The unit of the world frame and where it comes from: config, field (its data), or unknown."""
+    if options["unit"] is not None:
+        return str(options["unit"]), "config"
+    unit = getattr(field, "unit", None) or (getattr(field, "attrs", None) or {}).get("unit")
+    return (str(unit), "field") if unit else (None, "unknown")
+
+
 def _create(group, name, shape, chunks, dtype, dims, fill_value):
     # write_empty_chunks=False: a brick equal to the fill value is not stored (empty space is free)
     return group.create_array(name, shape=shape, chunks=chunks, dtype=dtype, dimension_names=dims,
@@ -311,14 +369,20 @@ def distill(field: SemanticField, out_path: str | Path, options: dict | None = N
 
     options = resolve_options(options)
     classes = [str(c) for c in field.classes]
-    grid = VoxelGrid.from_bounds(field.bounds_world, options["voxel_size"], options["max_voxels"])
-    v, brick, trunc = grid.voxel_size, options["brick"], options["distance_truncation"]
+    resolution = choose_voxel_size(field.bounds_world, options)
+    grid = VoxelGrid.from_bounds(field.bounds_world, resolution["voxel_size"])
+    truncation = choose_truncation(grid.voxel_size, options)
+    unit, unit_source = world_unit(field, options)
+    v, brick, trunc = grid.voxel_size, options["brick"], truncation["truncation"]
     thresholds = class_thresholds(classes, options)
     dist_classes = distance_classes(classes, options)
     shapes = pyramid_shapes(grid.shape)
     n_c = len(classes)
-    log.info("grid %s voxels of %.4g (origin %s), %d bricks of %d^3, classes %s", list(grid.shape), v,
-             np.round(grid.origin, 4).tolist(), grid.n_bricks(brick), brick, classes)
+    log.info("grid %s voxels of %.4g %s (origin %s), %d bricks of %d^3, classes %s", list(grid.shape), v,
+             unit or "world units (unit unknown)", np.round(grid.origin, 4).tolist(), grid.n_bricks(brick), brick,
+             classes)
+    if not classes:
+        log.info("the field has no semantic classes: distilling density and occupancy only")
 
     with create_artifact(out_path, STAGE, config=options, inputs=inputs) as group:
         b3, cb3 = (brick,) * 3, (1,) + (brick,) * 3
@@ -346,7 +410,7 @@ def distill(field: SemanticField, out_path: str | Path, options: dict | None = N
             arrays["class_occupancy"][(slice(None),) + zyx] = cls_occ
             levels[0][(slice(None),) + zyx] = np.concatenate([occ[None], cls_occ])
             counts[0] += int(occ.sum())
-            counts[1:] += cls_occ.reshape(n_c, -1).sum(axis=1, dtype=np.int64)
+            counts[1:] += cls_occ.sum(axis=(1, 2, 3), dtype=np.int64)
             kji = np.argwhere(occ)
             if len(kji):
                 offset = np.array([s.start for s in zyx])
@@ -366,7 +430,7 @@ def distill(field: SemanticField, out_path: str | Path, options: dict | None = N
         # pass 3
         for k in tqdm(range(1, len(levels)), desc="pyramid", disable=not progress, unit="level"):
             downsample_max(levels[k - 1], levels[k], brick)
-        pyramid.attrs["ome"] = multiscales_metadata(grid, len(levels), ["any"] + classes, options["unit"])
+        pyramid.attrs["ome"] = multiscales_metadata(grid, len(levels), ["any"] + classes, unit)
 
         # pass 4: Morton order within each brick differs from global order: sort the leaves once
         codes = np.concatenate(leaf_codes) if leaf_codes else np.zeros(0, np.uint64)
@@ -387,8 +451,15 @@ def distill(field: SemanticField, out_path: str | Path, options: dict | None = N
 
         update_attrs(
             group,
-            grid=grid.to_attrs(),
+            grid={**grid.to_attrs(), "unit": unit},
+            resolution=resolution,
+            unit=unit,
+            unit_source=unit_source,
             classes=classes,
+            density_only=not classes,
+            semantics=("none: the field has no classes, so probability and class_occupancy have 0 channels, "
+                       "there are no distance fields and every octree leaf_class is -1") if not classes else
+                      "per-class probability and occupancy, distance fields for the avoid/reach classes",
             class_table=[{"value": i, "name": name} for i, name in enumerate(classes)],
             thresholds={"alpha_threshold": options["alpha_threshold"],
                         "sigma_threshold": alpha_to_sigma(options["alpha_threshold"], v),
@@ -396,7 +467,7 @@ def distill(field: SemanticField, out_path: str | Path, options: dict | None = N
                         "density_floor_alpha": options["density_floor_alpha"],
                         "semantic_alpha_min": options["semantic_alpha_min"]},
             distance={"classes": [c for c, _ in dist_classes], "roles": [r for _, r in dist_classes],
-                      "truncation": trunc, "signed": "negative inside, world units"},
+                      **truncation, "signed": "negative inside, world units"},
             probability_encoding="uint8 round(255 p)",
             counts={"occupied_voxels": int(counts[0]),
                     "class_voxels": dict(zip(classes, counts[1:].tolist()))},

@@ -27,26 +27,15 @@ class VoxelGrid:
     shape: tuple[int, int, int]  # (nz, ny, nx), array order
 
     @classmethod
-    def from_bounds(cls, bounds_world, voxel_size: float, max_voxels: int | None = None) -> "VoxelGrid":
+    def from_bounds(cls, bounds_world, voxel_size: float) -> "VoxelGrid":
         """The smallest grid of `voxel_size` voxels covering `bounds_world` ([[min xyz], [max xyz]]).
 
         The grid is centred on the bounds, so the extent left over is split evenly on both sides.
         """
-        bounds = np.asarray(bounds_world, dtype=np.float64)
-        if bounds.shape != (2, 3) or not np.all(np.isfinite(bounds)):
-            raise ValueError(f"bounds_world must be finite [[min xyz], [max xyz]], got {bounds.tolist()}")
-        extent = bounds[1] - bounds[0]
-        if np.any(extent <= 0):
-            raise ValueError(f"bounds_world {bounds.tolist()} is empty along some axis")
+        bounds = check_bounds(bounds_world)
         if not voxel_size > 0:
             raise ValueError(f"voxel_size must be positive, got {voxel_size}")
-        # 1e-9 keeps an extent that is an exact multiple of the voxel size from gaining a voxel
-        counts_xyz = np.maximum(1, np.ceil(extent / voxel_size - 1e-9)).astype(int)
-        if max_voxels is not None and int(np.prod(counts_xyz)) > max_voxels:
-            raise ValueError(
-                f"voxel_size {voxel_size} over bounds {bounds.tolist()} gives a grid of "
-                f"{counts_xyz.tolist()} voxels (> max_voxels {max_voxels}); raise voxel_size"
-            )
+        counts_xyz = voxel_counts(bounds[1] - bounds[0], voxel_size)
         centre = bounds.mean(axis=0)
         origin = centre - counts_xyz * voxel_size / 2
         return cls(tuple(float(v) for v in origin), float(voxel_size), tuple(int(n) for n in counts_xyz[::-1]))
@@ -119,6 +108,45 @@ class VoxelGrid:
     def from_attrs(cls, attrs: dict) -> "VoxelGrid":
         return cls(tuple(float(v) for v in attrs["origin"]), float(attrs["voxel_size"]),
                    tuple(int(n) for n in attrs["shape"]))
+
+
+def check_bounds(bounds_world) -> np.ndarray:
+    """bounds_world as a (2, 3) float array, checked finite and non-empty along every axis."""
+    bounds = np.asarray(bounds_world, dtype=np.float64)
+    if bounds.shape != (2, 3) or not np.all(np.isfinite(bounds)):
+        raise ValueError(f"bounds_world must be finite [[min xyz], [max xyz]], got {bounds.tolist()}")
+    if np.any(bounds[1] - bounds[0] <= 0):
+        raise ValueError(f"bounds_world {bounds.tolist()} is empty along some axis")
+    return bounds
+
+
+def voxel_counts(extent_xyz, voxel_size: float) -> np.ndarray:
+    """Voxels (x, y, z) of edge `voxel_size` needed to cover `extent_xyz`, at least 1 per axis."""
+    # 1e-9 keeps an extent that is an exact multiple of the voxel size from gaining a voxel
+    return np.maximum(1, np.ceil(np.asarray(extent_xyz, dtype=np.float64) / voxel_size - 1e-9)).astype(np.int64)
+
+
+def voxel_size_within(bounds_world, voxel_size: float, max_voxels: int) -> float:
+    """The smallest voxel size >= `voxel_size` whose grid over `bounds_world` has <= `max_voxels` voxels.
+
+    The voxel count only falls as the size grows, so a bisection (in log size) finds the counts of
+    the finest grid that fits; the size returned is the smallest that gives those counts.
+    """
+    extent = np.diff(check_bounds(bounds_world), axis=0)[0]
+    if max_voxels < 1:
+        raise ValueError(f"max_voxels must be >= 1, got {max_voxels}")
+
+    def fits(size: float) -> bool:
+        return int(np.prod(voxel_counts(extent, size))) <= max_voxels
+
+    if fits(voxel_size):
+        return float(voxel_size)
+    too_fine, coarse = float(voxel_size), float(extent.max())  # one voxel along the largest axis fits
+    while coarse / too_fine - 1 > 1e-12:
+        middle = math.sqrt(too_fine * coarse)
+        too_fine, coarse = (too_fine, middle) if fits(middle) else (middle, coarse)
+    counts = voxel_counts(extent, coarse)
+    return float(max(voxel_size, (extent / counts).max()))
 
 
 # Morton (Z-order) codes: 21 bits per axis interleaved into a uint64, x in bit 0, y in bit 1, z in bit 2.
