@@ -2,9 +2,14 @@
 
 The held-out views are the ones the trainer excluded (recorded in srf.zarr; `split_views`).
 Writes `metrics.json` and one PNG per view (top: render | semantic blend | depth; bottom: the
-captured image | its labels | ground-truth depth when known), like the paper's figure 1.
+captured image | its reference labels | render opacity), like the paper's figure 1.
 IoU is computed on label images: a pixel takes the most probable class whose probability
 is >= 0.5, background otherwise; `miou` averages over the trained classes and background.
+
+A field with zero classes (a capture without masks) has nothing to segment and no reference
+labels to say which pixels are objects: its metrics are `psnr` and `ssim` only (no `psnr_object`,
+no IoU keys; accumulation is no stand-in for objects, since with a contracted background every
+pixel is opaque), and its renders drop the semantic panels (render | depth over image | opacity).
 """
 
 from __future__ import annotations
@@ -80,20 +85,32 @@ def depth_image(depth: np.ndarray, near: float, far: float) -> np.ndarray:
 
 def evaluate(images, labels, srf, out, options: dict, device="auto") -> dict:
     """Compute the metrics and renders; write them to `out` atomically; return the metrics."""
+    from srfpipe.srf.data import load_posed_images
+    from srfpipe.srf.query import SemanticRadianceField
+
+    field = SemanticRadianceField.load(srf, device)
+    data = load_posed_images(images, labels)
+    return evaluate_field(field, data, out, options, labels, srf)
+
+
+def evaluate_field(field, data, out, options: dict, labels, srf) -> dict:
+    """Metrics and renders of `field` on the held-out views of `data` (`PosedImages`), into `out`.
+
+    `field` needs `classes`, `attrs` (holdout_every, train_seconds), `world_from_scene` and
+    `render(camera_to_world, intrinsics, width, height)` like `SemanticRadianceField`; `labels`
+    and `srf` are the paths the data and the field came from (for messages and the record).
+    """
     import cv2
 
     from srfpipe.artifacts import atomic_directory, meta, open_artifact
     from srfpipe.srf import metrics
-    from srfpipe.srf.data import load_posed_images, split_views
-    from srfpipe.srf.query import SemanticRadianceField
+    from srfpipe.srf.data import split_views
     from srfpipe.srf.trainer import remap_ground_truth
 
     out = Path(out)
-    field = SemanticRadianceField.load(srf, device)
-    data = load_posed_images(images, labels)
     if data.label is None:
         raise ValueError(f"{labels}: missing array 'label' (the composited label image)")
-    if data.classes != field.classes:
+    if list(data.classes) != list(field.classes):
         raise ValueError(f"{labels}: classes {data.classes} differ from the SRF's {field.classes} ({srf})")
     holdout = int(options.get("holdout_every", field.attrs.get("holdout_every", 8)))
     if holdout != int(field.attrs.get("holdout_every", holdout)):
@@ -101,64 +118,65 @@ def evaluate(images, labels, srf, out, options: dict, device="auto") -> dict:
             f"{srf}: trained with holdout_every={field.attrs.get('holdout_every')}, evaluate asks for {holdout}"
         )
     _, heldout = split_views(data.count, holdout)
-    colours = class_colours(data.classes, meta(open_artifact(labels, stage="composite")))
     c = len(data.classes)
-    world_from_scene = field.world_from_scene
+    semantic = c > 0
+    colours = class_colours(data.classes, meta(open_artifact(labels, stage="composite")))
     conf = np.zeros((c + 1, c + 1), np.int64)
     conf_gt = np.zeros((c + 1, c + 1), np.int64) if data.gt_label is not None else None
     per_view, sq_err, sq_err_obj, obj_pixels = [], 0.0, 0.0, 0
-    # bottom row of each figure: the captured image | reference labels | render opacity
     with atomic_directory(out) as tmp:
         (tmp / "renders").mkdir()
         for index in heldout:
-            pose_world = world_from_scene_pose(world_from_scene, data.poses_scene[index].numpy())
+            pose_world = world_from_scene_pose(field.world_from_scene, data.poses_scene[index].numpy())
             result = field.render(pose_world, data.intrinsics[index].numpy(), data.width, data.height)
             target = data.images[index].numpy().astype(np.float64) / 255.0
-            pred_label = metrics.label_from_probabilities(result["semantic"])
-            label = data.label[index]
-            objects = label > 0
-            gt = None
-            if data.gt_label is not None:
-                gt = remap_ground_truth(data.gt_label[index], data.gt_classes, data.classes)
-                objects = gt > 0
-                conf_gt += metrics.confusion(pred_label, gt, c + 1)
-            conf += metrics.confusion(pred_label, label, c + 1)
             err = (result["rgb"].astype(np.float64) - target) ** 2
             sq_err += float(err.sum())
-            sq_err_obj += float(err[objects].sum())
-            obj_pixels += int(objects.sum())
-            view = {
-                "name": data.names[index], "index": int(index),
-                "psnr": metrics.psnr(result["rgb"], target),
-                "psnr_object": metrics.psnr(result["rgb"], target, objects),
-                "ssim": metrics.ssim(result["rgb"], target),
-            }
+            view = {"name": data.names[index], "index": int(index), "psnr": metrics.psnr(result["rgb"], target),
+                    "ssim": metrics.ssim(result["rgb"], target)}
+            pred_label = reference = None
+            if semantic:
+                pred_label = metrics.label_from_probabilities(result["semantic"])
+                reference = data.label[index]
+                conf += metrics.confusion(pred_label, reference, c + 1)
+                if data.gt_label is not None:
+                    reference = remap_ground_truth(data.gt_label[index], data.gt_classes, data.classes)
+                    conf_gt += metrics.confusion(pred_label, reference, c + 1)
+                objects = reference > 0
+                sq_err_obj += float(err[objects].sum())
+                obj_pixels += int(objects.sum())
+                view["psnr_object"] = metrics.psnr(result["rgb"], target, objects)
             per_view.append(view)
-            _write_figure(tmp / "renders" / f"{data.names[index]}.png", result, target, pred_label,
-                          gt if gt is not None else label, colours, data, index, field.scale, cv2)
+            _write_figure(tmp / "renders" / f"{data.names[index]}.png", result, target, pred_label, reference,
+                          colours, cv2)
         n_values = len(heldout) * data.height * data.width * 3
-        iou = metrics.iou_from_confusion(conf)
-        names = ["background"] + data.classes
         result = {
-            "views": len(heldout), "holdout_every": holdout,
+            "views": len(heldout), "holdout_every": holdout, "classes": list(data.classes),
             "psnr": -10 * np.log10(max(sq_err / n_values, 1e-12)),
-            "psnr_object": (-10 * np.log10(max(sq_err_obj / max(obj_pixels * 3, 1), 1e-12))) if obj_pixels else None,
             "ssim": float(np.mean([v["ssim"] for v in per_view])),
-            "iou": {name: _finite(v) for name, v in zip(names, iou)},
-            "miou": float(np.nanmean(iou)),
-            "miou_classes": float(np.nanmean(iou[1:])),
-            "label_source": str(labels),
-            "srf": str(srf), "train_seconds": field.attrs.get("train_seconds"),
-            "per_view": per_view,
         }
-        if conf_gt is not None:
-            iou_gt = metrics.iou_from_confusion(conf_gt)
-            result["iou_gt"] = {name: _finite(v) for name, v in zip(names, iou_gt)}
-            result["miou_gt"] = float(np.nanmean(iou_gt))
-            result["miou_gt_classes"] = float(np.nanmean(iou_gt[1:]))
+        if semantic:
+            result["psnr_object"] = (-10 * np.log10(max(sq_err_obj / max(obj_pixels * 3, 1), 1e-12))
+                                     if obj_pixels else None)
+            result.update(_iou_metrics(conf, ["background"] + data.classes, ""))
+            if conf_gt is not None:
+                result.update(_iou_metrics(conf_gt, ["background"] + data.classes, "_gt"))
+        result.update({"label_source": str(labels), "srf": str(srf), "train_seconds": field.attrs.get("train_seconds"),
+                       "per_view": per_view})
         (tmp / "metrics.json").write_text(json.dumps(_clean(result), indent=2))
-    log.info("psnr %.2f ssim %.3f miou %.3f", result["psnr"], result["ssim"], result["miou"])
+    log.info("psnr %.2f ssim %.3f%s", result["psnr"], result["ssim"],
+             f" miou {result['miou']:.3f}" if semantic else " (no classes: no IoU)")
     return result
+
+
+def _iou_metrics(confusion: np.ndarray, names: list[str], suffix: str) -> dict:
+    """iou{suffix} per label, miou{suffix} (with background) and miou{suffix}_classes (without)."""
+    from srfpipe.srf import metrics
+
+    iou = metrics.iou_from_confusion(confusion)
+    return {f"iou{suffix}": {name: _finite(v) for name, v in zip(names, iou)},
+            f"miou{suffix}": float(np.nanmean(iou)),
+            f"miou{suffix}_classes": float(np.nanmean(iou[1:]))}
 
 
 def world_from_scene_pose(world_from_scene: np.ndarray, pose_scene: np.ndarray) -> np.ndarray:
@@ -183,20 +201,19 @@ def _clean(value):
     return value
 
 
-def _write_figure(path, result, target, pred_label, label, colours, data, index, scale, cv2) -> None:
+def _write_figure(path, result, target, pred_label, reference, colours, cv2) -> None:
+    """Top: render | semantic blend | depth; bottom: captured image | reference labels | opacity.
+    Without classes (`pred_label` None) the semantic panels are left out."""
     depth = result["depth"]
     valid = result["accumulation"] > 0.5
     finite = depth[valid] if valid.any() else np.array([0.0, 1.0])
     near, far = float(np.percentile(finite, 2)), float(np.percentile(finite, 98))
-    top = np.concatenate([
-        (np.clip(result["rgb"], 0, 1) * 255).astype(np.uint8),
-        semantic_blend(result["rgb"], pred_label, colours),
-        depth_image(np.where(valid, depth, 0), near, far),
-    ], axis=1)
     opacity = np.repeat((np.clip(result["accumulation"], 0, 1) * 255).astype(np.uint8)[..., None], 3, axis=-1)
-    bottom = np.concatenate([
-        (target * 255).astype(np.uint8), semantic_blend(target, label, colours), opacity,
-    ], axis=1)
-    figure = np.concatenate([top, bottom], axis=0)
+    top = [(np.clip(result["rgb"], 0, 1) * 255).astype(np.uint8), depth_image(np.where(valid, depth, 0), near, far)]
+    bottom = [(target * 255).astype(np.uint8), opacity]
+    if pred_label is not None:
+        top.insert(1, semantic_blend(result["rgb"], pred_label, colours))
+        bottom.insert(1, semantic_blend(target, reference, colours))
+    figure = np.concatenate([np.concatenate(top, axis=1), np.concatenate(bottom, axis=1)], axis=0)
     if not cv2.imwrite(str(path), figure[..., ::-1]):
         raise RuntimeError(f"{path}: could not write PNG")

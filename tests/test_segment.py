@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from srfpipe.artifacts import create_artifact, meta, open_artifact
-from srfpipe.config import ConfigError, validate_scene
+from srfpipe.config import validate_scene
 from srfpipe.segment.composite import composite_masks, label_image
 from srfpipe.segment.run import prompt_options, segment_images
 
@@ -278,13 +278,14 @@ def test_import_missing_or_wrongly_sized_mask_names_the_file(tmp_path):
 # ------------------------------------------------------------------------------ composite
 
 
-def write_mask(path: Path, prompt: str, probability: np.ndarray, threshold: float = 0.5) -> Path:
+def write_mask(path: Path, prompt: str, probability: np.ndarray, threshold: float = 0.5,
+               names: list[str] | None = None) -> Path:
     n, height, width = probability.shape
     with create_artifact(path, stage="segment") as group:
         group.create_array("probability", shape=probability.shape, chunks=(1, height, width),
                            dtype="uint8")[:] = np.round(probability * 255).astype(np.uint8)
         group.attrs["srfpipe"] = {**group.attrs["srfpipe"], "prompt": prompt, "threshold": threshold,
-                                  "names": [f"frame_{i:05d}" for i in range(n)]}
+                                  "names": names or [f"frame_{i:05d}" for i in range(n)]}
     return path
 
 
@@ -295,7 +296,12 @@ def test_label_image_takes_the_most_probable_class_above_threshold():
     assert labels.tolist() == [1, 2, 3, 1]
 
 
+def blank_images(path: Path, n: int = 2, height: int = 4, width: int = 5) -> Path:
+    return write_images(path, np.zeros((n, height, width, 3), np.uint8))
+
+
 def test_composite_writes_labels_multihot_counts_and_drops_empty_classes(tmp_path):
+    images = blank_images(tmp_path / "images.zarr")
     apple = np.zeros((2, 4, 5), np.float32)
     leaf = np.zeros_like(apple)
     branch = np.zeros_like(apple)  # the scene has no branch
@@ -304,7 +310,7 @@ def test_composite_writes_labels_multihot_counts_and_drops_empty_classes(tmp_pat
     leaf[1] = 0.6
     masks = [write_mask(tmp_path / "apple.zarr", "apple", apple), write_mask(tmp_path / "branch.zarr", "branch", branch),
              write_mask(tmp_path / "leaf.zarr", "leaf", leaf, threshold=0.65)]
-    out = composite_masks(masks, validate_scene({})["labels"], tmp_path / "labels.zarr", progress=False)
+    out = composite_masks(images, masks, validate_scene({})["labels"], tmp_path / "labels.zarr", progress=False)
     group = open_artifact(out, stage="composite")
     info = meta(group)
     label = np.asarray(group["label"][:])
@@ -320,21 +326,62 @@ def test_composite_writes_labels_multihot_counts_and_drops_empty_classes(tmp_pat
     assert [c["label-value"] for c in table["colors"]] == [0, 1, 3]
     assert {p["class"]: p["pixel_count"] for p in table["properties"]} == {"background": 35, "apple": 3, "leaf": 2}
 
-    kept = composite_masks(masks, validate_scene({"labels": {"keep_empty_classes": True}})["labels"],
+    kept = composite_masks(images, masks, validate_scene({"labels": {"keep_empty_classes": True}})["labels"],
                            tmp_path / "all.zarr", progress=False)
     group = open_artifact(kept)
     assert meta(group)["classes"] == ["apple", "branch", "leaf"] and meta(group)["dropped_classes"] == []
     assert group["multihot"].shape == (2, 4, 5, 3)
 
 
-def test_empty_prompt_list_is_an_error(tmp_path):
-    with pytest.raises(ConfigError, match=r"segmentation.prompts: \[\] should be non-empty"):
-        validate_scene({"segmentation": {"prompts": []}}, "config/scenes/x.yaml")
-    with pytest.raises(ValueError, match="no masks given"):
-        composite_masks([], {}, tmp_path / "labels.zarr", progress=False)
+def test_no_prompts_give_labels_with_zero_classes(tmp_path):
+    # a capture without masks (a phone capture): valid config, and labels that say "no classes"
+    assert validate_scene({"segmentation": {"prompts": []}}, "config/scenes/x.yaml")["segmentation"]["prompts"] == []
+    images = blank_images(tmp_path / "images.zarr", n=3, height=6, width=7)
+    out = composite_masks(images, [], validate_scene({})["labels"], tmp_path / "labels.zarr", progress=False)
+    group = open_artifact(out, stage="composite")
+    info = meta(group)
+    assert info["classes"] == [] and info["class_values"] == {} and info["pixel_counts"] == {}
+    assert info["names"] == [f"frame_{i:05d}" for i in range(3)] and (info["width"], info["height"]) == (7, 6)
+    assert info["label_pixel_counts"] == {"background": 3 * 6 * 7}
+    assert group["multihot"].shape == (3, 6, 7, 0)
+    label = np.asarray(group["label"][:])
+    assert label.shape == (3, 6, 7) and not label.any()
+    assert any(entry["path"] == str(images) for entry in info["inputs"])
+
+    # the CLI the rule runs: --masks with nothing after it
+    result = subprocess.run([sys.executable, "-m", "srfpipe.cli", "composite", "--images", str(images),
+                             "--masks", "--out", str(tmp_path / "cli.zarr"), "--no-progress"],
+                            capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert meta(open_artifact(tmp_path / "cli.zarr"))["classes"] == []
     result = subprocess.run([sys.executable, "-m", "srfpipe.cli", "composite", "--out", str(tmp_path / "l.zarr"),
                              "--masks"], capture_output=True, text=True)
-    assert result.returncode != 0 and "--masks" in result.stderr
+    assert result.returncode != 0 and "--images" in result.stderr
+
+
+def test_prompts_that_all_come_out_empty_are_still_an_error(tmp_path):
+    images = blank_images(tmp_path / "images.zarr")
+    masks = [write_mask(tmp_path / f"{p}.zarr", p, np.zeros((2, 4, 5), np.float32)) for p in ("apple", "leaf")]
+    with pytest.raises(ValueError, match=r"no frame contains any of the classes \['apple', 'leaf'\]"):
+        composite_masks(images, masks, validate_scene({})["labels"], tmp_path / "labels.zarr", progress=False)
+    assert not (tmp_path / "labels.zarr").exists()
+    kept = composite_masks(images, masks, validate_scene({"labels": {"keep_empty_classes": True}})["labels"],
+                           tmp_path / "kept.zarr", progress=False)
+    assert meta(open_artifact(kept))["classes"] == ["apple", "leaf"]
+
+
+def test_masks_must_match_the_frames_of_images_zarr(tmp_path):
+    images = blank_images(tmp_path / "images.zarr")
+    good = write_mask(tmp_path / "apple.zarr", "apple", np.full((2, 4, 5), 0.9, np.float32))
+    small = write_mask(tmp_path / "leaf.zarr", "leaf", np.full((2, 4, 4), 0.9, np.float32))
+    with pytest.raises(ValueError, match=r"leaf.zarr: masks of shape \(2, 4, 4\).*images.zarr: 2 frames of 5x4"):
+        composite_masks(images, [good, small], {}, tmp_path / "labels.zarr", progress=False)
+    other = write_mask(tmp_path / "branch.zarr", "branch", np.full((2, 4, 5), 0.9, np.float32),
+                       names=["frame_00000", "IMG_0042"])
+    with pytest.raises(ValueError, match=r"branch.zarr: masks are for other frames than .*images.zarr: frame 1 is "
+                                         r"'IMG_0042' in the masks, 'frame_00001' in the images"):
+        composite_masks(images, [good, other], {}, tmp_path / "labels.zarr", progress=False)
+    assert not (tmp_path / "labels.zarr").exists()
 
 
 def test_prompt_options_hold_only_that_prompts_keys():
@@ -410,6 +457,19 @@ def test_orchard_masks_match_ground_truth_and_new_prompts_run_alone(workflow):
     scene["labels"] = {"keep_empty_classes": True}
     workflow.write_scene("small", scene)
     assert dry_run_outputs(workflow, target) == ["results/small/labels.zarr"]
+
+
+@pytest.mark.workflow
+def test_scene_without_prompts_builds_labels_without_segment_jobs(workflow):
+    scene = {"source": {"format": "orchard"}, "orchard": {"seed": 0, "views": 3, "width": 32, "height": 24},
+             "images": {"downscale": 1}, "segmentation": {"prompts": []}}
+    workflow.write_scene("phone", scene)
+    jobs = workflow.dry_run_jobs("results/phone/labels.zarr")
+    assert jobs.get("composite") == 1 and "segment" not in jobs
+    workflow.run("results/phone/labels.zarr")
+    labels = open_artifact(workflow.root / "results/phone/labels.zarr", stage="composite")
+    assert meta(labels)["classes"] == [] and labels["multihot"].shape == (3, 24, 32, 0)
+    assert labels["label"].shape == (3, 24, 32) and not np.asarray(labels["label"][:]).any()
 
 
 def test_cli_reports_an_unknown_prompt_in_one_line(tmp_path):

@@ -11,17 +11,26 @@ A class that no frame contains (at most `labels.min_pixels` pixels over all fram
 recorded in `dropped_classes` and left out of the label image, the multi-hot channels and
 `classes`, unless `labels.keep_empty_classes` is true. Kept classes keep their values, so a label
 value means the same thing in every scene with the same prompt list.
+
+The frames (names, size) come from images.zarr, and every mask must match them. With no prompts
+at all (a capture without masks) the labels have zero classes: `classes` [], an all-background
+label image and a multi-hot array of 0 channels.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from srfpipe.config import add_options_arguments, stage_options
+
+if TYPE_CHECKING:
+    import zarr
 
 log = logging.getLogger(__name__)
 
@@ -79,47 +88,79 @@ def image_label_table(classes: list[str], values: list[int], counts: dict[str, i
     return table
 
 
-def _open_masks(paths: list[str | Path]):
+@dataclass(frozen=True)
+class Frames:
+    """The posed frames of images.zarr that the labels describe: one label image per frame."""
+
+    path: Path
+    group: zarr.Group  # the open images.zarr (stage downscale)
+    names: list[str]
+    height: int
+    width: int
+
+    @property
+    def count(self) -> int:
+        return len(self.names)
+
+
+def read_frames(images_path: str | Path) -> Frames:
+    """Open images.zarr and read its frame names and image size."""
     from srfpipe.artifacts import meta, open_artifact
 
-    if not paths:
-        raise ValueError("composite: no masks given (segmentation.prompts is empty?)")
-    groups, prompts, thresholds = [], [], []
-    reference = None
+    group = open_artifact(images_path, stage="downscale")
+    if "images" not in group:
+        raise ValueError(f"{images_path}: missing array 'images'")
+    n, height, width = group["images"].shape[:3]
+    # the same fallback as the segment stage, so unnamed frames still match their masks
+    names = [str(name) for name in (meta(group).get("names") or [f"{i:05d}" for i in range(n)])]
+    if len(names) != n:
+        raise ValueError(f"{images_path}: {n} images but {len(names)} names")
+    return Frames(Path(images_path), group, names, int(height), int(width))
+
+
+def _check_mask_frames(path, shape, names, frames: Frames) -> None:
+    """A mask must hold one (H, W) map per frame of images.zarr, for the same frames in order."""
+    expected = (frames.count, frames.height, frames.width)
+    if tuple(shape) != expected:
+        raise ValueError(f"{path}: masks of shape {tuple(shape)} (frames, height, width) do not match "
+                         f"{frames.path}: {frames.count} frames of {frames.width}x{frames.height}")
+    if names is None or [str(n) for n in names] == frames.names:
+        return
+    if len(names) != frames.count:
+        raise ValueError(f"{path}: masks name {len(names)} frames, {frames.path} has {frames.count}")
+    first = next(i for i, (a, b) in enumerate(zip(names, frames.names)) if str(a) != b)
+    raise ValueError(f"{path}: masks are for other frames than {frames.path}: frame {first} is "
+                     f"{names[first]!r} in the masks, {frames.names[first]!r} in the images")
+
+
+def _open_masks(paths: list[str | Path], frames: Frames):
+    from srfpipe.artifacts import meta, open_artifact
+
+    arrays, prompts, thresholds = [], [], []
     for path in paths:
         group = open_artifact(path, stage="segment")
         info = meta(group)
-        shape = group["probability"].shape
-        names = info.get("names")
-        if reference is None:
-            reference = (path, shape, names)
-        elif shape != reference[1] or names != reference[2]:
-            raise ValueError(f"{path}: masks of shape {shape} for images {names[:3] if names else names}... "
-                             f"do not match {reference[0]} ({reference[1]})")
+        _check_mask_frames(path, group["probability"].shape, info.get("names"), frames)
         if info["prompt"] in prompts:
             raise ValueError(f"{path}: prompt {info['prompt']!r} is given twice")
-        groups.append(group["probability"])
+        arrays.append(group["probability"])
         prompts.append(info["prompt"])
         thresholds.append(float(info["threshold"]))
-    return groups, prompts, thresholds, reference
+    return arrays, prompts, thresholds
 
 
-def composite_masks(mask_paths: list[str | Path], options: dict, out: str | Path, progress: bool = True) -> Path:
-    """Read masks/{prompt}.zarr in class order and write labels.zarr."""
+def _probabilities(arrays, index: int, channels) -> np.ndarray:
+    """(C, H, W) float32 probabilities of one frame for the given mask channels."""
+    return np.stack([np.asarray(arrays[k][index]) for k in channels]).astype(np.float32) / 255.0
+
+
+def _kept_classes(arrays, prompts: list[str], t: np.ndarray, options: dict, n: int, progress: bool):
+    """Pass 1: which prompts' classes the scene contains; returns (kept indices, empty prompts)."""
     from tqdm import tqdm
 
-    from srfpipe.artifacts import create_artifact, update_attrs
-
-    arrays, prompts, thresholds, (_, shape, names) = _open_masks(mask_paths)
-    n, height, width = shape
-    all_values = list(range(1, len(prompts) + 1))
-    t = np.asarray(thresholds, dtype=np.float32)
-
-    # Pass 1: which classes does the scene contain at all?
     counts = np.zeros(len(prompts), dtype=np.int64)
     for i in tqdm(range(n), desc="count classes", unit="img", disable=not progress):
-        probs = np.stack([np.asarray(a[i]) for a in arrays]).astype(np.float32) / 255.0
-        counts += class_members(probs, t).reshape(len(prompts), -1).sum(axis=1)
+        counts += class_members(_probabilities(arrays, i, range(len(prompts))), t).reshape(len(prompts), -1).sum(axis=1)
     min_pixels = int(options.get("min_pixels", 0))
     empty = [p for p, c in zip(prompts, counts) if c <= min_pixels]
     keep_empty = bool(options.get("keep_empty_classes", False))
@@ -130,26 +171,51 @@ def composite_masks(mask_paths: list[str | Path], options: dict, out: str | Path
     if not kept:
         raise ValueError(f"composite: no frame contains any of the classes {prompts}; nothing to learn "
                          "(set labels.keep_empty_classes: true to keep them anyway)")
+    return kept, empty
+
+
+def composite_masks(images_path: str | Path, mask_paths: list[str | Path], options: dict, out: str | Path,
+                    progress: bool = True) -> Path:
+    """Read images.zarr and masks/{prompt}.zarr (in class order, maybe none) and write labels.zarr."""
+    from tqdm import tqdm
+
+    from srfpipe.artifacts import create_artifact, update_attrs
+
+    frames = read_frames(images_path)
+    arrays, prompts, thresholds = _open_masks(list(mask_paths), frames)
+    n, height, width, names = frames.count, frames.height, frames.width, frames.names
+    all_values = list(range(1, len(prompts) + 1))
+    t = np.asarray(thresholds, dtype=np.float32)
+    keep_empty = bool(options.get("keep_empty_classes", False))
+    if prompts:
+        kept, empty = _kept_classes(arrays, prompts, t, options, n, progress)
+    else:
+        kept, empty = [], []
+        log.info("no prompts (segmentation.prompts is empty): labels with zero classes for %d frames", n)
     classes = [prompts[k] for k in kept]
     values = [all_values[k] for k in kept]
 
     config = {**options, "prompts": prompts, "thresholds": dict(zip(prompts, thresholds))}
-    with create_artifact(out, stage="composite", config=config, inputs=list(mask_paths)) as group:
+    with create_artifact(out, stage="composite", config=config, inputs=[images_path, *mask_paths]) as group:
         label = group.create_array("label", shape=(n, height, width), chunks=(1, height, width), dtype="uint8",
                                    dimension_names=("image", "y", "x"), fill_value=0)
         multihot = group.create_array("multihot", shape=(n, height, width, len(kept)),
-                                      chunks=(1, height, width, len(kept)), dtype="uint8",
+                                      chunks=(1, height, width, max(1, len(kept))), dtype="uint8",
                                       dimension_names=("image", "y", "x", "class"), fill_value=0)
         label_counts = np.zeros(len(kept) + 1, dtype=np.int64)
         member_counts = np.zeros(len(kept), dtype=np.int64)
         for i in tqdm(range(n), desc="composite", unit="img", disable=not progress):
-            probs = np.stack([np.asarray(arrays[k][i]) for k in kept]).astype(np.float32) / 255.0
-            frame = label_image(probs, t[kept], values)
-            bits = class_members(probs, t[kept])
+            if kept:
+                probs = _probabilities(arrays, i, kept)
+                frame = label_image(probs, t[kept], values)
+                bits = class_members(probs, t[kept])
+            else:  # zero classes: every pixel is background
+                frame = np.zeros((height, width), dtype=np.uint8)
+                bits = np.zeros((0, height, width), dtype=bool)
             label[i] = frame
             multihot[i] = np.moveaxis(bits, 0, -1).astype(np.uint8)
             label_counts += np.bincount(np.searchsorted([0, *values], frame.ravel()), minlength=len(kept) + 1)
-            member_counts += bits.reshape(len(kept), -1).sum(axis=1)
+            member_counts += bits.sum(axis=(1, 2))
         pixel_counts = {c: int(m) for c, m in zip(classes, member_counts)}
         label_pixel_counts = {n_: int(c) for n_, c in zip(["background", *classes], label_counts)}
         table = image_label_table(classes, values, label_pixel_counts, options.get("colors", {}))
@@ -165,13 +231,16 @@ def composite_masks(mask_paths: list[str | Path], options: dict, out: str | Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--masks", nargs="+", required=True, metavar="ZARR",
-                        help="masks/{prompt}.zarr in class order (label values 1, 2, ... follow it)")
+    parser.add_argument("--images", required=True, metavar="ZARR",
+                        help="images.zarr (stage downscale): the frames the labels describe")
+    parser.add_argument("--masks", nargs="*", default=[], metavar="ZARR",
+                        help="masks/{prompt}.zarr in class order (label values 1, 2, ... follow it); "
+                             "none: labels with zero classes")
     parser.add_argument("--out", required=True, metavar="ZARR", help="output labels.zarr")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_options_arguments(parser, "labels")
 
 
 def run(args) -> int:
-    composite_masks(args.masks, stage_options(args, "labels"), args.out, progress=not args.no_progress)
+    composite_masks(args.images, args.masks, stage_options(args, "labels"), args.out, progress=not args.no_progress)
     return 0

@@ -36,7 +36,8 @@ def segment_model(scenes: dict):
 
 
 def scene_masks(scenes: dict, results: str):
-    """masks/{prompt}.zarr for the scene's prompts, in class order (the composite's inputs)."""
+    """masks/{prompt}.zarr for the scene's prompts, in class order (the composite's inputs; none
+    when the scene has no prompts)."""
     def masks(wildcards) -> list[str]:
         prompts = scenes[wildcards.scene]["segmentation"]["prompts"]
         return [f"{results}/{wildcards.scene}/masks/{prompt}.zarr" for prompt in prompts]

@@ -29,8 +29,11 @@ rule segment:
         "--options {params.options:q} --out {output} > {log} 2>&1"
 
 
+# images.zarr gives the frames the labels describe (and their size when there are no prompts:
+# a capture without masks gets labels with zero classes).
 rule composite:
     input:
+        images=rules.downscale.output[0],
         masks=scene_masks(SCENES, RESULTS),
     output:
         directory(f"{RESULTS}/{{scene}}/labels.zarr"),
@@ -45,5 +48,5 @@ rule composite:
         mem_mb=2000,
         runtime=30,
     shell:
-        "srfpipe composite --masks {input.masks} --options {params.options:q} "
+        "srfpipe composite --images {input.images} --masks {input.masks} --options {params.options:q} "
         "--out {output} > {log} 2>&1"

@@ -1,0 +1,87 @@
+"""The evaluate stage on a field with known answers: the synthetic sphere scene rendered exactly."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from srfpipe.artifacts import read_provenance
+from srfpipe.cameras import pixel_rays
+from srfpipe.evaluate import evaluate_field
+from srfpipe.segment.composite import composite_masks
+from srfpipe.srf import synthetic
+from srfpipe.srf.data import load_posed_images
+
+WIDTH, HEIGHT, VIEWS, HOLDOUT = 32, 24, 8, 4
+IOU_KEYS = ("iou", "miou", "miou_classes", "iou_gt", "miou_gt", "miou_gt_classes")
+
+
+class ExactField:
+    """Stands in for a trained SRF: renders the synthetic scene by ray casting, with `classes`
+    semantic channels (one-hot of the scene's labels 1..len(classes))."""
+
+    def __init__(self, images_path, classes: list[str]):
+        attrs = read_provenance(images_path)
+        self.classes = list(classes)
+        self.world_from_scene = np.asarray(attrs["world_from_scene"], dtype=np.float64)
+        self.attrs = {"holdout_every": HOLDOUT, "train_seconds": 0.0}
+
+    def render(self, camera_to_world, intrinsics, width, height) -> dict:
+        origins, directions = pixel_rays(camera_to_world, intrinsics, width, height)
+        rgb, label, depth = synthetic.render(origins, directions)
+        hit = np.isfinite(depth)
+        semantic = label[..., None] == np.arange(1, len(self.classes) + 1)  # (H, W, C), C may be 0
+        return {"rgb": rgb.astype(np.float32), "semantic": semantic.astype(np.float32),
+                "depth": np.where(hit, depth, 0).astype(np.float32), "accumulation": hit.astype(np.float32)}
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("synthetic")
+    images, labels = synthetic.write_scene(folder, views=VIEWS, width=WIDTH, height=HEIGHT)
+    return folder, images, labels
+
+
+def test_zero_classes_give_colour_metrics_and_two_panel_renders(scene):
+    folder, images, _ = scene
+    labels = composite_masks(images, [], {}, folder / "no_classes.zarr", progress=False)  # a capture without masks
+    data = load_posed_images(images, labels)
+    assert data.classes == []
+    out = folder / "eval_no_classes"
+    returned = evaluate_field(ExactField(images, []), data, out, {}, labels, "exact")
+    saved = json.loads((out / "metrics.json").read_text())
+    assert saved["classes"] == [] and saved["views"] == VIEWS // HOLDOUT
+    assert saved["psnr"] > 45 and saved["ssim"] > 0.98  # exact renders: only the 8-bit rounding differs
+    assert returned["psnr"] == pytest.approx(saved["psnr"])
+    for key in IOU_KEYS + ("psnr_object",):
+        assert key not in saved, key
+    assert all(set(view) == {"name", "index", "psnr", "ssim"} for view in saved["per_view"])
+    figure = cv2.imread(str(out / "renders" / "frame_00000.png"))
+    assert figure.shape == (2 * HEIGHT, 2 * WIDTH, 3)  # render | depth over image | opacity
+    np.testing.assert_allclose(figure[:HEIGHT, :WIDTH], figure[HEIGHT:, :WIDTH], atol=2)
+
+
+def test_classes_give_iou_and_three_panel_renders(scene):
+    folder, images, labels = scene
+    data = load_posed_images(images, labels)
+    out = folder / "eval_classes"
+    saved = evaluate_field(ExactField(images, data.classes), data, out, {}, labels, "exact")
+    assert saved["classes"] == ["apple", "branch", "leaf"]
+    for key in IOU_KEYS + ("psnr_object",):
+        assert key in saved, key
+    # poses make a float32 round trip through the scene frame: a few edge pixels may flip
+    assert saved["miou"] > 0.9 and saved["miou_gt"] > 0.9 and saved["psnr_object"] > 40
+    figure = cv2.imread(str(out / "renders" / "frame_00000.png"))
+    assert figure.shape == (2 * HEIGHT, 3 * WIDTH, 3)
+
+
+def test_classes_that_differ_from_the_fields_name_both(scene):
+    folder, images, labels = scene
+    data = load_posed_images(images, labels)
+    with pytest.raises(ValueError, match=r"labels.zarr: classes \['apple', 'branch', 'leaf'\] differ from the SRF's "
+                                         r"\[\] \(exact\)"):
+        evaluate_field(ExactField(images, []), data, folder / "eval_bad", {}, labels, "exact")
+    assert not (folder / "eval_bad").exists()
