@@ -363,7 +363,7 @@ def test_field_without_classes_distills_density_and_occupancy_only(tmp_path, cap
     truth = np.linalg.norm(points - CENTRE, axis=1) <= RADIUS
     occupancy = cache.occupancy(points)
     assert (truth & occupancy).sum() / (truth | occupancy).sum() > 0.85
-    assert cache.semantic(points).shape == (20000, 0)
+    assert cache.semantic(points).shape == (20000, 0) and cache.class_occupancy(points).shape == (20000, 0)
     t, hit = cache.raycast(np.array([[-2.0, CENTRE[1], CENTRE[2]]]), np.array([[1.0, 0.0, 0.0]]))
     assert abs(t[0] - (2.0 + CENTRE[0] - RADIUS)) < 2 * 0.025 and hit[0] == -1
 
