@@ -1,23 +1,26 @@
-"""CPU ray-cast renderer for the procedural orchard (open3d `RaycastingScene`).
+"""CPU ray-cast renderer for the procedural scenes (open3d `RaycastingScene`), and the orchard's materials.
+
+A scene is a list of `Part`s (mesh, class value, material) under a `Lighting`; the orchard's are
+built by `orchard_parts`, the plant's in `srfpipe.scenes.plant`.
 
 Per pixel: one primary ray (class label, z-depth, colour), then one shadow ray toward the sun
 from every hit. Colour = albedo * (sky ambient + sun * max(0, n.l) * lit), gamma-encoded; misses
-get a sky gradient. Every albedo is modulated by 3D value noise of the world hit position, so
+get the lighting's background (the orchard's sky gradient). Every albedo is modulated by 3D value noise of the world hit position, so
 the texture is fixed to the surface (multi-view consistent) and rich enough for SIFT matching.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
 from srfpipe.cameras import pixel_rays
-from srfpipe.scenes.tree import Tree
+from srfpipe.scenes.tree import UNIT_SPHERE, Mesh, Tree
 
-# class values in the label images (paper order); the ground is background
+# orchard class values in the label images (paper order); the ground is background
 BACKGROUND, APPLE, BRANCH, LEAF = 0, 1, 2, 3
-MESH_CLASSES = {"apple": APPLE, "branch": BRANCH, "leaf": LEAF, "ground": BACKGROUND}
 
 SKY_ZENITH = np.array([0.32, 0.52, 0.86])
 SKY_HORIZON = np.array([0.80, 0.87, 0.95])
@@ -164,28 +167,64 @@ class Render:
     depth: np.ndarray  # (H, W) float32, z along the camera +z; 0 where the ray hits nothing
 
 
-class OrchardRenderer:
-    """Holds the raycasting scene of one tree; `render(camera_to_world, intrinsics, w, h)` per view."""
+@dataclass
+class Part:
+    """One surface of a scene: its mesh, class value in the label images, and material.
 
-    def __init__(self, tree: Tree, seed: int, sun_direction: np.ndarray):
+    `albedo(points, primitive_ids, footprint)` gives linear RGB (N, 3) at world hit points, where
+    `footprint` is the size of a pixel on the surface (world units). Spheres given by
+    `sphere_centres` (sphere k owning triangles [k*T, (k+1)*T), as `tree.spheres` builds them) are
+    shaded with their analytic normals instead of facets. `translucency` lights back sides (leaves).
+    """
+
+    name: str
+    mesh: Mesh
+    label: int
+    albedo: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+    sphere_centres: np.ndarray | None = None
+    sphere_radius: float = 0.0
+    translucency: float = 0.0
+
+
+@dataclass
+class Lighting:
+    """A sun (or studio key light) with hard shadows, a sky-like ambient term, and what misses show.
+
+    `background(directions)` is the linear RGB of rays that hit nothing; `shadow_bias` (world
+    units) starts shadow rays just off the surface so it does not shadow itself.
+    """
+
+    sun: np.ndarray
+    background: Callable[[np.ndarray], np.ndarray]
+    ambient: float = AMBIENT
+    sun_strength: float = SUN
+    shadow_bias: float = SHADOW_BIAS
+
+
+def sky(directions: np.ndarray) -> np.ndarray:
+    """The orchard's sky gradient, horizon to zenith, linear RGB."""
+    elevation = np.clip(directions[:, 2], 0.0, 1.0) ** 0.6
+    return _mix(SKY_HORIZON, SKY_ZENITH, elevation) ** 2.2  # stored linear, encoded later
+
+
+class Renderer:
+    """Holds the raycasting scene of some `Part`s; `render(camera_to_world, intrinsics, w, h)` per view."""
+
+    def __init__(self, parts: list[Part], lighting: Lighting):
         import open3d as o3d
 
-        self.tree = tree
-        self.seed = seed
-        self.sun = np.asarray(sun_direction, np.float64) / np.linalg.norm(sun_direction)
+        self.lighting = lighting
+        self.sun = np.asarray(lighting.sun, np.float64) / np.linalg.norm(lighting.sun)
         self.scene = o3d.t.geometry.RaycastingScene()
-        self.class_of_geometry = {}
-        self.name_of_geometry = {}
-        for name in ("apple", "branch", "leaf", "ground"):
-            mesh = getattr(tree, name)
-            if len(mesh.triangles) == 0:
+        self.part_of_geometry: dict[int, Part] = {}
+        for part in parts:
+            if len(part.mesh.triangles) == 0:
                 continue
             gid = self.scene.add_triangles(
-                o3d.core.Tensor(mesh.vertices.astype(np.float32)),
-                o3d.core.Tensor(mesh.triangles.astype(np.uint32)),
+                o3d.core.Tensor(part.mesh.vertices.astype(np.float32)),
+                o3d.core.Tensor(part.mesh.triangles.astype(np.uint32)),
             )
-            self.class_of_geometry[gid] = MESH_CLASSES[name]
-            self.name_of_geometry[gid] = name
+            self.part_of_geometry[gid] = part
         self._o3d = o3d
 
     def _cast(self, origins: np.ndarray, directions: np.ndarray) -> dict:
@@ -195,7 +234,7 @@ class OrchardRenderer:
 
     def _lit(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
         """1 where the sun is visible from the surface point, else 0."""
-        origins = points + SHADOW_BIAS * normals
+        origins = points + self.lighting.shadow_bias * normals
         directions = np.broadcast_to(self.sun.astype(np.float32), origins.shape)
         rays = np.concatenate([origins, directions], -1).astype(np.float32)
         occluded = self.scene.test_occlusions(self._o3d.core.Tensor(rays)).numpy()
@@ -226,23 +265,19 @@ class OrchardRenderer:
         valid = np.isfinite(t)
 
         label = np.zeros(len(t), np.uint8)
-        for g, cls in self.class_of_geometry.items():
-            label[gid == g] = cls
+        for g, part in self.part_of_geometry.items():
+            label[gid == g] = part.label
         # z-depth: distance along the ray times the cosine to the optical axis
         depth = np.where(valid, t * (directions @ forward), 0.0).astype(np.float32)
 
         rgb = np.empty((len(t), 3), np.float32)
-        rgb[~valid] = self._sky(directions[~valid])
+        rgb[~valid] = self.lighting.background(directions[~valid])
         idx = np.nonzero(valid)[0]
         if len(idx):
             rgb[idx] = self._shade(origins[idx], directions[idx], t[idx], gid[idx], pid[idx],
                                    hit["primitive_normals"][idx], focal)
         encoded = np.clip(rgb, 0.0, 1.0) ** (1.0 / 2.2)
         return (encoded * 255.0 + 0.5).astype(np.uint8), label, depth
-
-    def _sky(self, directions: np.ndarray) -> np.ndarray:
-        elevation = np.clip(directions[:, 2], 0.0, 1.0) ** 0.6
-        return _mix(SKY_HORIZON, SKY_ZENITH, elevation) ** 2.2  # stored linear, encoded later
 
     def _shade(self, origins, directions, t, gid, pid, normals, focal: float) -> np.ndarray:
         points = (origins + t[:, None] * directions).astype(np.float32)
@@ -251,24 +286,19 @@ class OrchardRenderer:
         cosine = np.abs(np.sum(normals * directions, -1))
         footprint = (t / focal / np.sqrt(np.maximum(cosine, 0.05))).astype(np.float32)
         albedo = np.zeros_like(points)
-        tree = self.tree
-        for g, name in self.name_of_geometry.items():
+        translucent = np.zeros(len(points), np.float32)
+        for g, part in self.part_of_geometry.items():
             m = gid == g
             if not m.any():
                 continue
             x = points[m]
-            if name == "ground":
-                albedo[m] = ground_albedo(x, self.seed, footprint[m])
-            elif name == "branch":
-                albedo[m] = branch_albedo(x, self.seed, footprint[m])
-            elif name == "leaf":
-                albedo[m] = leaf_albedo(x, tree.leaf_tint[pid[m] // 2], self.seed, footprint[m])
-            elif name == "apple":
-                k = pid[m] // tree.triangles_per_apple
-                centre = tree.apple_centres[k].astype(np.float32)
-                albedo[m] = apple_albedo(x, tree.apple_ripeness[k], centre, self.seed, footprint[m])
+            albedo[m] = part.albedo(x, pid[m], footprint[m])
+            if part.sphere_centres is not None:
                 # the analytic sphere normal: smooth shading instead of facets
-                normals[m] = (x - centre) / tree.apple_radius
+                centre = part.sphere_centres[pid[m] // len(UNIT_SPHERE.triangles)].astype(np.float32)
+                normals[m] = (x - centre) / part.sphere_radius
+            if part.translucency:
+                translucent[m] = part.translucency
         # two-sided surfaces (leaves): shade the side facing the camera
         flip = np.sum(normals * directions, -1) > 0
         normals[flip] *= -1.0
@@ -277,10 +307,32 @@ class OrchardRenderer:
         facing = lambert > 0
         if facing.any():
             lit[facing] = self._lit(points[facing], normals[facing])
-        # leaves let some light through, so their back sides are not black
-        translucent = np.zeros(len(points), np.float32)
-        for g, name in self.name_of_geometry.items():
-            if name == "leaf":
-                translucent[gid == g] = 0.12
-        light = AMBIENT * (0.75 + 0.25 * normals[:, 2]) + SUN * lambert * lit + translucent
+        light = (self.lighting.ambient * (0.75 + 0.25 * normals[:, 2])
+                 + self.lighting.sun_strength * lambert * lit + translucent)
         return albedo * light[:, None]
+
+
+def orchard_parts(tree: Tree, seed: int) -> list[Part]:
+    """The tree's surfaces with the orchard materials; the ground is seen but labelled background."""
+
+    def apple(x, pid, footprint):
+        k = pid // tree.triangles_per_apple
+        centre = tree.apple_centres[k].astype(np.float32)
+        return apple_albedo(x, tree.apple_ripeness[k], centre, seed, footprint)
+
+    return [
+        Part("apple", tree.apple, APPLE, apple, tree.apple_centres, tree.apple_radius),
+        Part("branch", tree.branch, BRANCH, lambda x, pid, fp: branch_albedo(x, seed, fp)),
+        Part("leaf", tree.leaf, LEAF, lambda x, pid, fp: leaf_albedo(x, tree.leaf_tint[pid // 2], seed, fp),
+             translucency=0.12),
+        Part("ground", tree.ground, BACKGROUND, lambda x, pid, fp: ground_albedo(x, seed, fp)),
+    ]
+
+
+class OrchardRenderer(Renderer):
+    """The renderer of one procedural apple tree under a sun and a sky."""
+
+    def __init__(self, tree: Tree, seed: int, sun_direction: np.ndarray):
+        self.tree = tree
+        self.seed = seed
+        super().__init__(orchard_parts(tree, seed), Lighting(np.asarray(sun_direction, np.float64), sky))
