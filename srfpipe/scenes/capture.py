@@ -80,6 +80,21 @@ def frame_names(count: int) -> list[str]:
     return [f"frame_{i:05d}" for i in range(count)]
 
 
+# ----------------------------------------------------------------------------- command line
+
+
+def add_generator_arguments(parser, section: str) -> None:
+    """A generator subcommand's arguments: its scene section's keys (--scene/--options) and --out."""
+    from srfpipe.config import add_options_arguments, section_defaults
+
+    defaults = section_defaults(section)
+    parser.epilog = f"{section} keys (schema defaults): " + ", ".join(f"{k}={v}" for k, v in defaults.items())
+    add_options_arguments(parser, section)
+    parser.add_argument("--out", required=True, metavar="DIR",
+                        help="capture folder to write (replaced atomically)")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
 # ----------------------------------------------------------------------------- files
 
 

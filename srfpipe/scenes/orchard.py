@@ -27,8 +27,11 @@ from pathlib import Path
 
 import numpy as np
 
-from srfpipe.config import add_options_arguments, section_defaults, stage_options, validate_scene
-from srfpipe.scenes.capture import intrinsics_for, look_at, ring_poses, write_capture  # noqa: F401 (look_at: API)
+from srfpipe.config import stage_options, validate_scene
+from srfpipe.scenes.capture import (  # noqa: F401 (look_at: imported from here by callers)
+    add_generator_arguments, intrinsics_for, look_at, ring_poses, write_capture,
+)
+from srfpipe.scenes.raycast import light_direction
 
 log = logging.getLogger(__name__)
 
@@ -42,10 +45,7 @@ SUN_ELEVATION_DEG = (40.0, 65.0)  # range over seeds
 
 def sun_direction(rng: np.random.Generator) -> np.ndarray:
     """Unit vector toward the sun: any azimuth, a mid-day elevation (varies by seed, for training variety)."""
-    azimuth = rng.uniform(0, 2 * np.pi)
-    elevation = np.radians(rng.uniform(*SUN_ELEVATION_DEG))
-    horizontal = np.cos(elevation)
-    return np.array([horizontal * np.cos(azimuth), horizontal * np.sin(azimuth), np.sin(elevation)])
+    return light_direction(rng, SUN_ELEVATION_DEG)
 
 
 def _tree_bounds(tree) -> list[list[float]]:
@@ -108,15 +108,9 @@ def generate_orchard(out_dir: str | Path, progress: bool = True, **options) -> P
 
 
 def add_arguments(parser) -> None:
-    defaults = section_defaults("orchard")
-    parser.epilog = "orchard keys (schema defaults): " + ", ".join(f"{k}={v}" for k, v in defaults.items())
-    add_options_arguments(parser, "orchard")
-    parser.add_argument("--out", required=True, metavar="DIR",
-                        help="capture folder to write (replaced atomically)")
-    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    add_generator_arguments(parser, "orchard")
 
 
 def run(args) -> int:
-    options = stage_options(args, "orchard")
-    generate_orchard(args.out, progress=not args.no_progress, **options)
+    generate_orchard(args.out, progress=not args.no_progress, **stage_options(args, "orchard"))
     return 0

@@ -201,6 +201,14 @@ class Lighting:
     shadow_bias: float = SHADOW_BIAS
 
 
+def light_direction(rng: np.random.Generator, elevation_range_deg: tuple[float, float]) -> np.ndarray:
+    """Unit vector toward a light at any azimuth and an elevation drawn from the range (degrees)."""
+    azimuth = rng.uniform(0, 2 * np.pi)
+    elevation = np.radians(rng.uniform(*elevation_range_deg))
+    horizontal = np.cos(elevation)
+    return np.array([horizontal * np.cos(azimuth), horizontal * np.sin(azimuth), np.sin(elevation)])
+
+
 def sky(directions: np.ndarray) -> np.ndarray:
     """The orchard's sky gradient, horizon to zenith, linear RGB."""
     elevation = np.clip(directions[:, 2], 0.0, 1.0) ** 0.6

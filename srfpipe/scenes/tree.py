@@ -133,18 +133,41 @@ def spheres(centres: np.ndarray, radius: float | np.ndarray) -> Mesh:
     return Mesh(vertices.astype(np.float32), triangles.astype(np.int32))
 
 
-def leaves(centres: np.ndarray, normals: np.ndarray, directions: np.ndarray) -> Mesh:
-    """Diamond leaves (4 vertices, 2 triangles each); leaf k owns triangles 2k and 2k+1."""
+def wood_mesh(segments: list["Segment"], taper: float = 0.85) -> Mesh:
+    """A tube per segment tapering to `taper` times its radius, capped by a sphere so joints stay closed."""
+    return Mesh.concatenate(
+        [tube(s.start, s.end, s.radius, s.radius * taper) for s in segments]
+        + [spheres(np.array([s.end for s in segments]), np.array([s.radius * taper for s in segments]))]
+    )
+
+
+def far_from(points: np.ndarray, centres: np.ndarray, distance: float) -> np.ndarray:
+    """(P,) True where a point is more than `distance` from every centre (all True without centres)."""
+    if len(points) == 0 or len(centres) == 0:
+        return np.ones(len(points), bool)
+    return np.linalg.norm(points[:, None] - centres[None], axis=-1).min(1) > distance
+
+
+DIAMOND = ((-1.0, 0.0), (0.0, 1.0), (1.0, 0.0), (0.0, -1.0))  # leaf outline: (along, across) in half sizes
+
+
+def leaves(centres: np.ndarray, normals: np.ndarray, directions: np.ndarray, length: float = LEAF_LENGTH,
+           width: float = LEAF_WIDTH, outline=DIAMOND) -> Mesh:
+    """Flat leaves, one convex `outline` each, fanned from its first point (the leaf's base).
+
+    `outline` points are (along the blade, across it) in units of half the length and half the
+    width; leaf k owns triangles [k*(P-2), (k+1)*(P-2)) for P outline points (2 for the diamond).
+    """
     n = normals / np.linalg.norm(normals, axis=1, keepdims=True)
     d = directions - np.sum(directions * n, axis=1, keepdims=True) * n  # blade direction in the leaf plane
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     side = np.cross(n, d)
-    half_l, half_w = 0.5 * LEAF_LENGTH, 0.5 * LEAF_WIDTH
-    corners = np.stack(
-        [centres - half_l * d, centres + half_w * side, centres + half_l * d, centres - half_w * side], 1
-    )
-    base = 4 * np.arange(len(centres))[:, None]
-    triangles = np.concatenate([base + [0, 1, 2], base + [0, 2, 3]], 1).reshape(-1, 3)
+    half_l, half_w = 0.5 * length, 0.5 * width
+    corners = np.stack([centres + along * half_l * d + across * half_w * side for along, across in outline], 1)
+    points = len(outline)
+    fan = np.array([[0, k, k + 1] for k in range(1, points - 1)])
+    base = points * np.arange(len(centres))[:, None, None]
+    triangles = (base + fan[None]).reshape(-1, 3)
     return Mesh(corners.reshape(-1, 3).astype(np.float32), triangles.astype(np.int32))
 
 
@@ -302,18 +325,13 @@ def build_tree(
     # the trunk base sinks a little into the ground so there is no visible gap at z = 0
     segments[0].start = segments[0].start - np.array([0.0, 0.0, 0.05])
 
-    branch = Mesh.concatenate(
-        [tube(s.start, s.end, s.radius, s.radius * 0.85) for s in segments]
-        + [spheres(np.array([s.end for s in segments]), np.array([s.radius * 0.85 for s in segments]))]
-    )
+    branch = wood_mesh(segments)
 
     leaf_centres, leaf_normals, leaf_dirs = _scatter_leaves(rng, segments, leaf_density, branch_depth)
     apple_centres = _hang_apples(rng, segments, n_apples, branch_depth, APPLE_RADIUS)
     keep = leaf_centres[:, 2] > 0.05 if len(leaf_centres) else np.zeros(0, bool)
-    if len(apple_centres) and len(leaf_centres):
-        # no leaf blade may pierce an apple: it would show as green speckles on the fruit
-        dist = np.linalg.norm(leaf_centres[:, None] - apple_centres[None], axis=-1).min(1)
-        keep &= dist > APPLE_RADIUS + 0.5 * LEAF_LENGTH
+    # no leaf blade may pierce an apple: it would show as green speckles on the fruit
+    keep &= far_from(leaf_centres, apple_centres, APPLE_RADIUS + 0.5 * LEAF_LENGTH)
     leaf_centres = leaf_centres[keep]
     leaf = leaves(leaf_centres, leaf_normals[keep], leaf_dirs[keep])
     apple = spheres(apple_centres, APPLE_RADIUS)
