@@ -115,6 +115,24 @@ def _ground_truth_files(ground_truth: Path, image_paths: list[str]) -> dict[str,
     return files or None
 
 
+def _ground_truth_classes(ground_truth: Path) -> list[str] | None:
+    """The class names of the label values (index = value) from ground_truth/scene.json, if it has them."""
+    import json
+
+    path = ground_truth / "scene.json"
+    if not path.is_file():
+        return None
+    try:
+        classes = json.loads(path.read_text()).get("classes")
+    except (OSError, ValueError, AttributeError) as exc:
+        raise ValueError(f"{path}: cannot read the ground-truth classes ({exc})") from exc
+    if classes is None:
+        return None
+    if not isinstance(classes, list) or not classes or not all(isinstance(c, str) for c in classes):
+        raise ValueError(f"{path}: classes must be a non-empty list of names (value 0 first), got {classes!r}")
+    return classes
+
+
 def _read_label(path: Path) -> np.ndarray:
     import cv2
 
@@ -167,6 +185,7 @@ def downscale_images(poses_path: str | Path, options: dict, out: str | Path, pro
     ])
     ground_truth = Path(info["ground_truth"]) if info.get("ground_truth") else None
     gt_files = _ground_truth_files(ground_truth, image_paths) if ground_truth else None
+    gt_classes = _ground_truth_classes(ground_truth) if gt_files and "labels" in gt_files else None
 
     config = {"images": options}
     with create_artifact(out, "downscale", config=config, inputs=[str(poses_path)]) as group:
@@ -202,6 +221,9 @@ def downscale_images(poses_path: str | Path, options: dict, out: str | Path, pro
                 # nearest: class ids and depths must not be blended across edges
                 data = undistort(data, intrinsics[i], distortion[i], cv2.INTER_NEAREST)
                 if kind == "labels":
+                    if gt_classes and data.max(initial=0) >= len(gt_classes):
+                        raise ValueError(f"{gt_path}: label value {int(data.max())} has no class in "
+                                         f"{ground_truth / 'scene.json'} (classes {gt_classes})")
                     array[i] = downscale_labels(data, width, height)
                 else:
                     array[i] = cv2.resize(data, (width, height), interpolation=cv2.INTER_NEAREST_EXACT)
@@ -218,6 +240,7 @@ def downscale_images(poses_path: str | Path, options: dict, out: str | Path, pro
             world_from_scene=info["world_from_scene"],
             bounds_world=info["bounds_world"],
             ground_truth=str(ground_truth) if ground_truth else None,
+            ground_truth_classes=gt_classes,
         )
     log.info("wrote %s: %d images of %dx%d (downscale %g)", out, n, width, height, factor)
     return Path(out)

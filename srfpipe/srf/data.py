@@ -15,14 +15,16 @@ import torch
 from srfpipe.artifacts import meta, open_artifact
 from srfpipe.cameras import transform_poses
 
+ORCHARD_GT_CLASSES = ["background", "apple", "branch", "leaf"]  # label value = index
+
 
 @dataclass
 class PosedImages:
     images: torch.Tensor  # (N, H, W, 3) uint8
     multihot: torch.Tensor | None  # (N, H, W, C) uint8, or None without labels
     label: np.ndarray | None  # (N, H, W) uint8 composited label image
-    gt_label: np.ndarray | None  # (N, H, W) uint8 ground-truth classes (orchard only)
-    gt_classes: list[str] | None
+    gt_label: np.ndarray | None  # (N, H, W) uint8 ground-truth classes (generated captures only)
+    gt_classes: list[str] | None  # name of each gt_label value
     poses_scene: torch.Tensor  # (N, 4, 4) float32 camera_to_scene
     intrinsics: torch.Tensor  # (N, 4) float32
     width: int
@@ -89,7 +91,8 @@ def load_posed_images(images_path, labels_path=None) -> PosedImages:
     gt_label = gt_classes = None
     if "ground_truth" in group and "labels" in group["ground_truth"]:
         gt_label = np.asarray(group["ground_truth"]["labels"][...])
-        gt_classes = ["background", "apple", "branch", "leaf"]
+        # images.zarr written before the downscale stage recorded the names are all orchards
+        gt_classes = [str(c) for c in attrs.get("ground_truth_classes") or ORCHARD_GT_CLASSES]
     multihot = label = None
     classes: list[str] = []
     if labels_path is not None:
