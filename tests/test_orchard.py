@@ -16,7 +16,9 @@ from srfpipe.scenes.orchard import generate_orchard
 TINY = {"views": 12, "width": 128, "height": 96, "n_apples": 10, "seed": 3}
 
 
-def _read_capture(folder):
+def read_capture(folder):
+    """A generated capture in memory: images (BGR), labels, depth, poses, and every ground-truth
+    JSON file by name (scene, apples or berries)."""
     transforms = json.loads((folder / "transforms.json").read_text())
     gt = folder / "ground_truth"
     frames = transforms["frames"]
@@ -28,15 +30,14 @@ def _read_capture(folder):
         "images": [cv2.imread(str(folder / f["file_path"]), cv2.IMREAD_COLOR) for f in frames],
         "labels": [cv2.imread(str(gt / "labels" / f"{s}.png"), cv2.IMREAD_UNCHANGED) for s in stems],
         "depth": [np.load(gt / "depth" / f"{s}.npy") for s in stems],
-        "apples": json.loads((gt / "apples.json").read_text()),
-        "scene": json.loads((gt / "scene.json").read_text()),
+        **{path.stem: json.loads(path.read_text()) for path in sorted(gt.glob("*.json"))},
     }
 
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     folder = generate_orchard(tmp_path_factory.mktemp("orchard") / "capture", progress=False, **TINY)
-    return folder, _read_capture(folder)
+    return folder, read_capture(folder)
 
 
 def test_layout_and_atomic_write(tiny):
@@ -118,13 +119,13 @@ def test_most_apples_are_visible_somewhere(tiny):
 
 def test_deterministic_by_seed(tiny, tmp_path):
     folder, cap = tiny
-    again = _read_capture(generate_orchard(tmp_path / "same", progress=False, **TINY))
+    again = read_capture(generate_orchard(tmp_path / "same", progress=False, **TINY))
     for a, b in zip(cap["images"], again["images"]):
         np.testing.assert_array_equal(a, b)
     for a, b in zip(cap["labels"], again["labels"]):
         np.testing.assert_array_equal(a, b)
     assert cap["apples"] == again["apples"]
-    other = _read_capture(generate_orchard(tmp_path / "other", progress=False, **{**TINY, "seed": 4}))
+    other = read_capture(generate_orchard(tmp_path / "other", progress=False, **{**TINY, "seed": 4}))
     assert other["apples"] != cap["apples"]
     assert np.mean(np.abs(other["images"][0].astype(int) - cap["images"][0].astype(int))) > 5
 

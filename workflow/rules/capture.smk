@@ -1,9 +1,12 @@
-# The built-in procedural orchard capture (nerfstudio format + ground truth), and pose import.
+# The built-in procedural captures (nerfstudio format + ground truth), and pose import.
+# Both generators write results/{scene}/capture: each rule is constrained to its format's scenes.
 
 
 rule orchard_capture:
     output:
         directory(f"{RESULTS}/{{scene}}/capture"),
+    wildcard_constraints:
+        scene=scenes_of_format("orchard"),
     params:
         options=scene_section("orchard"),
     log:
@@ -18,13 +21,33 @@ rule orchard_capture:
         "srfpipe orchard --options {params.options:q} --out {output} > {log} 2>&1"
 
 
+# A thin sapling in millimetres, few far views, dark backdrop (srfpipe/scenes/plant.py).
+rule plant_capture:
+    output:
+        directory(f"{RESULTS}/{{scene}}/capture"),
+    wildcard_constraints:
+        scene=scenes_of_format("plant"),
+    params:
+        options=scene_section("plant"),
+    log:
+        "logs/{scene}/plant_capture.log",
+    benchmark:
+        "benchmarks/runs/{scene}/plant_capture.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+        runtime=10,
+    shell:
+        "srfpipe plant --options {params.options:q} --out {output} > {log} 2>&1"
+
+
 rule poses:
     input:
         capture=capture_dir,
     output:
         directory(f"{RESULTS}/{{scene}}/poses.zarr"),
     params:
-        source=scene_section("source"),
+        source=poses_source,
         options=scene_section("poses"),
     log:
         "logs/{scene}/poses.log",

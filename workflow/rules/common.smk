@@ -55,9 +55,28 @@ def scene_section(section):
     return lambda wildcards: json.dumps(SCENES[wildcards.scene][section], sort_keys=True)
 
 
+# source.format values made by a built-in generator (rule <format>_capture, scene section <format>)
+GENERATED_FORMATS = ("orchard", "plant")
+
+
+def scenes_of_format(fmt):
+    """A wildcard constraint matching exactly the scenes of one source format (never empty)."""
+    names = [name for name, scene in SCENES.items() if scene["source"]["format"] == fmt]
+    return "|".join(sorted(names)) or f"NO_{fmt.upper()}_SCENES"
+
+
 def capture_dir(wildcards):
-    """The capture folder: generated for the built-in orchard, a folder on disk otherwise."""
+    """The capture folder: generated for the built-in orchard and plant, a folder on disk otherwise."""
     source = SCENES[wildcards.scene]["source"]
-    if source["format"] == "orchard":
+    if source["format"] in GENERATED_FORMATS:
         return f"{RESULTS}/{wildcards.scene}/capture"
     return source["path"]
+
+
+def poses_source(wildcards):
+    """The source section for the poses stage. A plant capture is a plain nerfstudio folder with
+    ground truth, and the poses stage knows no format 'plant', so it imports it as nerfstudio."""
+    source = dict(SCENES[wildcards.scene]["source"])
+    if source["format"] == "plant":
+        source["format"] = "nerfstudio"
+    return json.dumps(source, sort_keys=True)

@@ -1,0 +1,219 @@
+"""The built-in plant generator: a thin sapling in millimetres, few far views, dark backdrop.
+
+Checks the capture itself (views, units, thin stem, labels against depth, far cameras) and the way
+it enters the workflow (its own capture rule, poses without ground-truth bounds, class names carried
+into images.zarr and read back by the SRF data loader, masks imported from its labels).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from srfpipe.artifacts import open_artifact, read_provenance
+from srfpipe.cameras import pixel_rays, project_points
+from srfpipe.scenes.plant import generate_plant
+from tests.conftest import REPO
+from tests.test_orchard import read_capture
+
+CLASSES = ["background", "stem", "leaf", "berry"]
+SMALL = {"views": 16, "width": 128, "height": 128, "seed": 2}
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    folder = generate_plant(tmp_path_factory.mktemp("plant") / "capture", progress=False, **SMALL)
+    return folder, read_capture(folder)
+
+
+@pytest.fixture(scope="module")
+def full_size(tmp_path_factory):
+    """Two views at the default size (512x512), where the stem's width in pixels is what users get."""
+    folder = generate_plant(tmp_path_factory.mktemp("plant_full") / "capture", progress=False, views=2)
+    return read_capture(folder)
+
+
+def mean_width(mask: np.ndarray) -> float:
+    """Mean width in pixels of the shapes in a binary mask: 2 * area / perimeter (a strip's width)."""
+    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+    perimeter = sum(cv2.arcLength(c, True) for c in contours)
+    return 2.0 * float(mask.sum()) / max(perimeter, 1.0)
+
+
+def test_capture_has_the_requested_views_classes_and_units(small):
+    folder, cap = small
+    assert sorted(p.name for p in folder.parent.iterdir()) == ["capture"], "temp folder left behind"
+    assert len(cap["transforms"]["frames"]) == SMALL["views"] == len(cap["images"]) == len(cap["depth"])
+    for image, label, depth in zip(cap["images"], cap["labels"], cap["depth"]):
+        assert image.shape == (128, 128, 3) and label.shape == (128, 128) and depth.dtype == np.float32
+    scene = cap["scene"]
+    assert scene["classes"] == CLASSES
+    assert scene["units"] == "millimetre"
+    assert "bounds_world" not in scene, "the poses stage would take it as the scene bounds"
+    lo, hi = np.array(scene["object_bounds_world"])
+    assert hi[2] == pytest.approx(300.0, rel=1e-4), "the plant is plant_height millimetres tall"
+    assert np.all(hi - lo > 50) and np.all(hi - lo < 305.0)  # the tilted stem base dips a little below 0
+    assert len(cap["berries"]) == scene["plant"]["n_berries"] == 9
+    for name in ("stem", "leaf", "berry"):
+        assert (folder / "ground_truth" / "meshes" / f"{name}.ply").stat().st_size > 1000
+
+
+def test_labels_agree_with_depth_and_the_true_geometry(small):
+    """Foreground pixels have depth and back-project into the plant's box; background has none.
+
+    Berry pixels back-project onto a berry's surface: depth and labels are in millimetres and agree.
+    """
+    _, cap = small
+    lo, hi = (np.array(b) for b in cap["scene"]["object_bounds_world"])
+    centres = np.array([b["centre"] for b in cap["berries"]])
+    radius = cap["berries"][0]["radius"]
+    present = set()
+    for pose, label, depth in zip(cap["poses"], cap["labels"], cap["depth"]):
+        assert np.all(np.isfinite(depth))
+        np.testing.assert_array_equal(label > 0, depth > 0)
+        present |= set(np.unique(label).tolist())
+        origins, directions = pixel_rays(pose, cap["intrinsics"], 128, 128)
+        points = origins + (depth / (directions @ pose[:3, 2]))[..., None] * directions
+        plant = points[label > 0]
+        assert np.all((plant >= lo - 0.05) & (plant <= hi + 0.05))
+        berry = points[label == 3]
+        if len(berry):
+            distance = np.linalg.norm(berry[:, None] - centres[None], axis=-1).min(1)
+            assert np.all(np.abs(distance - radius) < 0.07 * radius)  # facets of a 12-sided UV sphere
+    assert present == {0, 1, 2, 3}
+
+
+def test_stem_is_thin_at_the_default_size(full_size):
+    """The stem class (stem, twigs, stalks) is a few pixels wide; leaves and berries are much wider."""
+    assert full_size["images"][0].shape == (512, 512, 3)
+    for label in full_size["labels"]:
+        stem, leaf, berry = (label == value for value in (1, 2, 3))
+        assert stem.sum() > 500, "the stem must be visible in every view"
+        assert mean_width(stem) < 3.0
+        assert mean_width(leaf) > 1.8 * mean_width(stem) and mean_width(berry) > 1.8 * mean_width(stem)
+        # nowhere wider than the stem's base (about 8 px): the largest inscribed half-widths stay small
+        half_width = cv2.distanceTransform(stem.astype(np.uint8), cv2.DIST_L2, 5)[stem]
+        assert np.percentile(half_width, 99) <= 5.0
+
+
+def test_cameras_are_far_and_the_plant_still_fills_the_frame(full_size, small):
+    _, cap = small
+    lo, hi = (np.array(b) for b in cap["scene"]["object_bounds_world"])
+    target = np.array(cap["scene"]["look_at_target"])
+    np.testing.assert_allclose(target, (lo + hi) / 2)
+    size = float(np.max(hi - lo))
+    distances = np.linalg.norm(cap["poses"][:, :3, 3] - target, axis=1)
+    assert np.all(distances > 6 * size) and np.all(distances < 10 * size)
+    elevations = np.degrees(np.arcsin((cap["poses"][:, 2, 3] - target[2]) / distances))
+    assert np.sum(np.abs(elevations - 10) < 3) == 8 and np.sum(np.abs(elevations - 40) < 3) == 8
+    for pose in cap["poses"]:
+        uv, z = project_points(target[None], pose, cap["intrinsics"])
+        assert z[0] > 0 and np.allclose(uv[0], 64.0, atol=0.5), "every camera looks at the plant"
+    for label in full_size["labels"]:
+        rows = np.nonzero(label.any(axis=1))[0]
+        assert (rows.max() - rows.min()) / label.shape[0] > 0.45
+
+
+def test_backdrop_is_dark_and_noisy_and_the_plant_stands_out(small):
+    _, cap = small
+    rgb = np.concatenate([image[..., ::-1].reshape(-1, 3) for image in cap["images"]]).astype(float)
+    label = np.concatenate([label.ravel() for label in cap["labels"]])
+    background = rgb[label == 0]
+    assert background.mean() < 25 and background.std() > 0.5
+    leaf, berry = rgb[label == 2].mean(0), rgb[label == 3].mean(0)
+    assert leaf[1] > leaf[0] and leaf[1] > leaf[2] and leaf.mean() > background.mean() + 20
+    assert berry[0] > berry[1] + 40 and berry[0] > berry[2] + 40
+
+
+def test_deterministic_by_seed(small, tmp_path):
+    _, cap = small
+    again = read_capture(generate_plant(tmp_path / "same", progress=False, **SMALL))
+    for a, b in zip(cap["images"] + cap["labels"], again["images"] + again["labels"]):
+        np.testing.assert_array_equal(a, b)
+    other = read_capture(generate_plant(tmp_path / "other", progress=False, **{**SMALL, "seed": 3}))
+    assert other["berries"] != cap["berries"]
+    assert np.mean(other["labels"][0] != cap["labels"][0]) > 0.01
+
+
+def test_bare_plant_and_bad_options(tmp_path, capsys):
+    from srfpipe.cli import main
+
+    bare = read_capture(generate_plant(tmp_path / "bare", progress=False, views=2, width=64, height=64,
+                                        n_twigs=0, n_berries=0))
+    assert bare["berries"] == []
+    assert set(np.unique(np.concatenate([label.ravel() for label in bare["labels"]])).tolist()) <= {0, 1, 2}
+    out = tmp_path / "bad"
+    assert main(["plant", "--options", '{"views": 1}', "--out", str(out)]) == 1
+    assert "plant.views: 1 is less than the minimum of 2" in capsys.readouterr().err
+    assert main(["plant", "--options", '{"n_apples": 3}', "--out", str(out)]) == 1
+    assert "n_apples" in capsys.readouterr().err
+    assert not out.exists()
+
+
+# ----------------------------------------------------------------------------- in the workflow
+
+
+def _plant_scene(**plant) -> dict:
+    """config/scenes/plant.yaml as shipped, with a tiny capture and working resolution = capture."""
+    scene = yaml.safe_load((REPO / "config" / "scenes" / "plant.yaml").read_text())
+    scene["plant"] = {"views": 16, "width": 48, "height": 48, **plant}
+    scene["images"] = {"downscale": 1}
+    return scene
+
+
+@pytest.mark.workflow
+def test_plant_and_orchard_scenes_each_get_their_own_capture_rule(workflow):
+    from tests.conftest import TINY_ORCHARD
+
+    workflow.write_scene("plant", _plant_scene())
+    workflow.write_scene("tiny", TINY_ORCHARD)
+    jobs = workflow.dry_run_jobs("results/plant/images.zarr", "results/tiny/images.zarr")
+    rules = ("plant_capture", "orchard_capture", "poses", "downscale")
+    assert {rule: jobs.get(rule) for rule in rules} == {"plant_capture": 1, "orchard_capture": 1, "poses": 2,
+                                                         "downscale": 2}
+
+
+@pytest.mark.workflow
+def test_shipped_plant_scene_to_labels(workflow):
+    """The shipped scene file builds: bounds from the data, class names carried, masks from the labels."""
+    from srfpipe.srf.data import load_posed_images
+
+    workflow.write_scene("plant", _plant_scene())
+    workflow.run("results/plant/labels.zarr")
+    results = workflow.root / "results" / "plant"
+    poses = read_provenance(results / "poses.zarr")
+    assert poses["source_format"] == "nerfstudio" and poses["bounds_source"] == "frusta"
+    images = open_artifact(results / "images.zarr", stage="downscale")
+    assert images["images"].shape == (16, 48, 48, 3)
+    assert read_provenance(results / "images.zarr")["ground_truth_classes"] == CLASSES
+    data = load_posed_images(results / "images.zarr", results / "labels.zarr")
+    assert data.gt_classes == CLASSES
+    # imported from the ground-truth labels at the capture's size: the composite is the ground truth
+    truth = np.asarray(images["ground_truth/labels"][:])
+    lookup = np.zeros(256, np.uint8)
+    for name in data.classes:
+        lookup[CLASSES.index(name)] = data.classes.index(name) + 1
+    np.testing.assert_array_equal(data.label, lookup[truth])
+    assert set(data.classes) >= {"leaf", "berry"}
+    assert (workflow.root / "logs" / "plant" / "plant_capture.log").exists()
+
+
+def test_images_zarr_without_class_names_reads_as_an_orchard(tmp_path):
+    """images.zarr written before ground_truth_classes existed: the loader falls back to the orchard's names."""
+    import zarr
+
+    from srfpipe.artifacts import create_artifact, update_attrs
+    from srfpipe.srf.data import ORCHARD_GT_CLASSES, load_posed_images
+
+    path = tmp_path / "images.zarr"
+    with create_artifact(path, "downscale", config={}, inputs=[]) as group:
+        group.create_array("images", data=np.zeros((2, 4, 4, 3), np.uint8))
+        group.create_array("intrinsics", data=np.tile([4.0, 4.0, 2.0, 2.0], (2, 1)))
+        group.create_array("camera_to_world", data=np.tile(np.eye(4), (2, 1, 1)))
+        group.create_group("ground_truth").create_array("labels", data=np.zeros((2, 4, 4), np.uint8))
+        update_attrs(group, scene_from_world=np.eye(4), bounds_world=[[-1, -1, -1], [1, 1, 1]])
+    assert load_posed_images(path).gt_classes == ORCHARD_GT_CLASSES
+    update_attrs(zarr.open_group(str(path), mode="r+"), ground_truth_classes=CLASSES)
+    assert load_posed_images(path).gt_classes == CLASSES
