@@ -48,7 +48,8 @@ def run(args) -> int:
 
         torch.set_num_threads(args.threads)
     metrics = evaluate(args.images, args.labels, args.srf, args.out, options, device=args.device)
-    summary = {k: metrics[k] for k in ("psnr", "psnr_object", "ssim", "miou", "miou_gt") if k in metrics}
+    summary = {k: metrics[k] for k in ("psnr", "psnr_object", "ssim", "miou", "miou_gt", "floater_fraction")
+               if k in metrics}
     print(json.dumps(summary))
     return 0
 
@@ -124,6 +125,7 @@ def evaluate_field(field, data, out, options: dict, labels, srf) -> dict:
     conf = np.zeros((c + 1, c + 1), np.int64)
     conf_gt = np.zeros((c + 1, c + 1), np.int64) if data.gt_label is not None else None
     per_view, sq_err, sq_err_obj, obj_pixels = [], 0.0, 0.0, 0
+    significant, floaters = 0.0, 0.0  # samples with weight > 0.03, and those off the ray's surface
     with atomic_directory(out) as tmp:
         (tmp / "renders").mkdir()
         for index in heldout:
@@ -132,6 +134,9 @@ def evaluate_field(field, data, out, options: dict, labels, srf) -> dict:
             target = data.images[index].numpy().astype(np.float64) / 255.0
             err = (result["rgb"].astype(np.float64) - target) ** 2
             sq_err += float(err.sum())
+            if "floater_samples" in result:
+                significant += float(result["significant_samples"].sum())
+                floaters += float(result["floater_samples"].sum())
             view = {"name": data.names[index], "index": int(index), "psnr": metrics.psnr(result["rgb"], target),
                     "ssim": metrics.ssim(result["rgb"], target)}
             pred_label = reference = None
@@ -155,6 +160,11 @@ def evaluate_field(field, data, out, options: dict, labels, srf) -> dict:
             "psnr": -10 * np.log10(max(sq_err / n_values, 1e-12)),
             "ssim": float(np.mean([v["ssim"] for v in per_view])),
         }
+        if significant:
+            # fog and floaters: of the samples that carry weight (> 0.03), the share that lies
+            # off the surface each ray sees (srfpipe.srf.model.FLOATER_CELLS from its median depth)
+            result["floater_fraction"] = floaters / significant
+            result["significant_samples_per_ray"] = significant / (len(heldout) * data.height * data.width)
         if semantic:
             result["psnr_object"] = (-10 * np.log10(max(sq_err_obj / max(obj_pixels * 3, 1), 1e-12))
                                      if obj_pixels else None)

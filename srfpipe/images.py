@@ -239,6 +239,7 @@ def downscale_images(poses_path: str | Path, options: dict, out: str | Path, pro
             scene_from_world=info["scene_from_world"],
             world_from_scene=info["world_from_scene"],
             bounds_world=info["bounds_world"],
+            bounds_source=info.get("bounds_source"),
             ground_truth=str(ground_truth) if ground_truth else None,
             ground_truth_classes=gt_classes,
         )

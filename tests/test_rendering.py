@@ -78,3 +78,29 @@ def test_autocast_on_cpu_renders_in_float32(dtype):
     assert w.dtype == torch.float32 and rgb.dtype == torch.float32
     rgb.square().sum().backward()
     assert torch.isfinite(layer.weight.grad).all()
+
+
+def test_floater_counts_find_weight_off_the_surface():
+    from srfpipe.srf.rendering import floater_counts, render_weights
+
+    t = torch.arange(10, dtype=torch.float32)[None].repeat(3, 1) + 0.5
+    delta = torch.ones(3, 10)
+    sigma = torch.zeros(3, 10)
+    sigma[0, 6] = 1e12  # one opaque surface: no floater
+    sigma[1, 2], sigma[1, 7] = 0.5, 1e12  # a veil two cells in front of the surface
+    sigma[2] = 0.05  # uniform fog along the whole ray
+    weights = render_weights(sigma, delta)
+    significant, floaters = floater_counts(weights, t, torch.full((3, 10), 1.5))
+    assert significant.tolist()[0] == 1 and floaters.tolist()[0] == 0
+    assert floaters.tolist()[1] == 1
+    assert floaters[2] >= 4 and significant[2] >= 8
+    assert torch.isfinite(significant).all() and torch.isfinite(floaters).all()
+
+
+def test_floater_counts_of_empty_rays_are_zero():
+    from srfpipe.srf.rendering import floater_counts
+
+    significant, floaters = floater_counts(torch.zeros(4, 0), torch.zeros(4, 0), torch.zeros(4, 0))
+    assert significant.tolist() == [0, 0, 0, 0] and floaters.tolist() == [0, 0, 0, 0]
+    significant, floaters = floater_counts(torch.zeros(2, 5), torch.rand(2, 5), torch.ones(2, 5))
+    assert significant.sum() == 0 and floaters.sum() == 0

@@ -177,3 +177,50 @@ def test_snakemake_tiny_orchard_to_srf_and_eval(workflow):
     for rule in ("train", "evaluate"):
         assert (workflow.root / "logs" / "tiny" / f"{rule}.log").exists()
     assert (workflow.root / "logs" / "tiny" / "train_metrics.jsonl").read_text().strip()
+
+
+def test_zero_classes_train_colour_only_and_real_captures_get_appearance(tmp_path):
+    from srfpipe.segment.composite import composite_masks
+
+    images, _ = write_scene(tmp_path, views=6, width=24, height=16)
+    labels = composite_masks(images, [], {}, tmp_path / "labels0.zarr", progress=False)
+    out = tmp_path / "srf.zarr"
+    summary = train(images, labels, out, tiny_options(iterations=40, checkpoint_every=0), holdout_every=3)
+    model, attrs = read_srf(out)
+    assert attrs["classes"] == [] and model.field.num_classes == 0
+    assert summary["iterations"] == 40
+    # the synthetic scene is generated (it has ground truth): no per-image appearance
+    assert attrs["config"]["appearance_dim"] == 0 and model.field.appearance is None
+    curve = read_curve(out)
+    assert curve["psnr"][-1] > curve["psnr"][0] + 3
+    field = SemanticRadianceField(model, attrs, torch.device("cpu"))
+    pose = np.eye(4)
+    render = field.render(pose, [20.0, 20.0, 12.0, 8.0], 24, 16)
+    assert render["semantic"].shape == (16, 24, 0)
+    assert np.isfinite(render["floater_samples"]).all()
+
+
+def test_appearance_is_on_by_default_for_real_captures_only():
+    from types import SimpleNamespace
+
+    from srfpipe.srf.trainer import resolve_data_defaults
+
+    real, generated = SimpleNamespace(gt_label=None), SimpleNamespace(gt_label=np.zeros((1, 2, 2)))
+    assert resolve_data_defaults({"appearance_dim": None}, real)["appearance_dim"] == 8
+    assert resolve_data_defaults({"appearance_dim": None}, generated)["appearance_dim"] == 0
+    assert resolve_data_defaults({"appearance_dim": 4}, real)["appearance_dim"] == 4
+
+
+def test_progress_bar_counts_seconds_of_a_time_budget():
+    from srfpipe.srf.trainer import TrainingProgress
+
+    bar = TrainingProgress(0, 3000, 0.0, time_budget=600)
+    bar.advance(10, 12.5)
+    assert bar.bar.total == 600 and bar.bar.n == pytest.approx(12.5) and bar.postfix["step"] == 10
+    bar.advance(2000, 700.0)  # the last step may overrun the budget: the bar stops at 100 %
+    assert bar.bar.n == 600
+    bar.close()
+    steps = TrainingProgress(5, 100, 0.0, time_budget=0)
+    steps.advance(6, 1.0)
+    assert steps.bar.total == 100 and steps.bar.n == 6
+    steps.close()

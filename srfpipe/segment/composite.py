@@ -220,6 +220,7 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
         label_pixel_counts = {n_: int(c) for n_, c in zip(["background", *classes], label_counts)}
         table = image_label_table(classes, values, label_pixel_counts, options.get("colors", {}))
         label.attrs["image-label"] = table
+        update_attrs(group, **scene_bounds(frames, label, options.get("bounds", "auto"), bool(classes)))
         update_attrs(group, classes=classes, class_values=dict(zip(classes, values)), names=names,
                      pixel_counts=pixel_counts, label_pixel_counts=label_pixel_counts,
                      dropped_classes=[] if keep_empty else empty, empty_classes=empty,
@@ -228,6 +229,36 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
     log.info("%s: classes %s, pixel counts %s, dropped %s", out, classes, pixel_counts,
              [] if keep_empty else empty)
     return Path(out)
+
+
+def scene_bounds(frames: Frames, label, policy: str, has_classes: bool) -> dict:
+    """The bounds every later stage uses: the visual hull of the labelled pixels, or the poses'.
+
+    `auto` carves the hull when there are classes and the poses' bounds were only estimated
+    (points or frusta); bounds given in the config or by the capture's ground truth are kept.
+    """
+    from srfpipe.artifacts import meta
+    from srfpipe.segment.hull import bounds_from_masks
+
+    info = meta(frames.group)
+    if info.get("bounds_world") is None:  # images.zarr without a scene box: nothing to refine
+        return {}
+    poses_bounds = np.asarray(info["bounds_world"], dtype=np.float64)
+    poses_source = info.get("bounds_source") or "poses"
+    kept = {"bounds_world": poses_bounds, "bounds_source": poses_source, "bounds_poses": poses_bounds}
+    trusted = poses_source in ("config", "ground_truth")
+    if policy == "poses" or not has_classes or (policy == "auto" and trusted):
+        return kept
+    found = bounds_from_masks(
+        np.asarray(frames.group["camera_to_world"][...]), np.asarray(frames.group["intrinsics"][...]),
+        (np.asarray(label[i]) > 0 for i in range(frames.count)), poses_bounds)
+    if found is None:
+        return {**kept, "bounds_hull": None}
+    box, record = found
+    log.info("bounds from the masks' visual hull: %s (%.3g of the volume of the %s bounds)",
+             np.round(box, 4).tolist(), record["volume_vs_poses_bounds"], poses_source)
+    return {"bounds_world": box, "bounds_source": "mask_hull", "bounds_poses": poses_bounds,
+            "bounds_hull": record}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from srfpipe.artifacts import meta, open_artifact
-from srfpipe.cameras import transform_poses
+from srfpipe.cameras import scene_from_world_transform, transform_poses
 
 ORCHARD_GT_CLASSES = ["background", "apple", "branch", "leaf"]  # label value = index
 
@@ -108,6 +108,14 @@ def load_posed_images(images_path, labels_path=None) -> PosedImages:
                 f"{labels_path}: multihot {multihot.shape} does not match {n} images of {w}x{h} "
                 f"and {len(classes)} classes {classes}"
             )
+        if lattrs.get("bounds_world") is not None:
+            # the labels stage refines the bounds (visual hull of the masks): from here on they
+            # are the scene's bounds, and the scene frame is normalized to them
+            bounds = np.asarray(lattrs["bounds_world"], dtype=np.float64)
+            if bounds.shape != (2, 3) or not np.all(bounds[1] > bounds[0]):
+                raise ValueError(f"{labels_path}: attribute bounds_world must be [[min xyz], [max xyz]] with min < max")
+            scene_from_world = scene_from_world_transform(bounds[0], bounds[1])
+            world_from_scene = np.linalg.inv(scene_from_world)
         if "label" in lgroup:
             label = np.asarray(lgroup["label"][...])
             # label values follow the config's prompt order (a dropped class leaves a gap):

@@ -49,6 +49,21 @@ def total_loss(
     return {"loss": photo + lambda_sem * sem, "photometric": photo, "semantic": sem}
 
 
+def total_variation(table: torch.Tensor, resolution) -> torch.Tensor:
+    """Mean squared difference between neighbouring grid points along x, y and z (Plenoxels' TV).
+
+    table (Rx*Ry*Rz, F) channels-last, x-major (as `DenseGrid` stores it). Penalising it makes a
+    cell's value agree with its neighbours unless the photometric loss insists, which removes the
+    isolated floaters that a dense grid otherwise grows to fit single training views.
+    """
+    rx, ry, rz = (int(r) for r in resolution)
+    grid = table.view(rx, ry, rz, -1).float()
+    dx = (grid[1:] - grid[:-1]).square().mean()
+    dy = (grid[:, 1:] - grid[:, :-1]).square().mean()
+    dz = (grid[:, :, 1:] - grid[:, :, :-1]).square().mean()
+    return dx + dy + dz
+
+
 def psnr_from_mse(mse: float) -> float:
     """PSNR in dB of images in [0, 1] (per-channel MSE)."""
     import math

@@ -55,6 +55,8 @@ def ssim(pred: np.ndarray, target: np.ndarray, window: int = 11, sigma: float = 
 def label_from_probabilities(probabilities: np.ndarray, threshold: float = 0.5) -> np.ndarray:
     """Label image (…,) from per-class probabilities (…, C): 1 + argmax, 0 where no class passes."""
     probabilities = np.asarray(probabilities)
+    if probabilities.shape[-1] == 0:  # no classes: every pixel is background
+        return np.zeros(probabilities.shape[:-1], dtype=np.uint8)
     best = probabilities.argmax(axis=-1)
     return np.where(probabilities.max(axis=-1) >= threshold, best + 1, 0).astype(np.uint8)
 

@@ -16,6 +16,12 @@ from srfpipe.srf import rendering
 from srfpipe.srf.field import SemanticField, grid_resolution
 from srfpipe.srf.sampling import OccupancyGrid, SamplerSettings, generate_intervals, pack
 
+# A sample "carries weight" above FLOATER_WEIGHT (the fog criterion of the any-capture issue); it
+# is a floater when it lies more than FLOATER_CELLS grid cells (plus its own length) from the
+# ray's median-weight depth, i.e. not on the surface the ray sees.
+FLOATER_WEIGHT = 0.03
+FLOATER_CELLS = 4.0
+
 
 def scene_scale(scene_from_world) -> float:
     """The uniform scale s of the similarity x_scene = s R x_world + t."""
@@ -73,7 +79,7 @@ def build_model_config(options: dict, bounds_world, scene_from_world, classes: l
         "contraction": contraction, "inner": inner, "outer": outer,
         "hidden": int(options.get("hidden", 64)), "geo_features": int(options.get("geo_features", 15)),
         "sh_degree": int(options.get("sh_degree", 4)), "num_classes": len(classes),
-        "appearance_dim": int(options.get("appearance_dim", 0)), "num_images": int(num_images),
+        "appearance_dim": int(options.get("appearance_dim") or 0), "num_images": int(num_images),
         "density_bias": density_bias, "density_grid": density_grid,
         "color_layers": int(options.get("color_layers", 2)),
         "semantic_octaves": int(options.get("semantic_octaves", 4)),
@@ -160,7 +166,7 @@ class SRFModel(nn.Module):
             rendering.accumulate(sem_weights, sem_pad), sem_weights.sum(-1),
             field.background_logits.expand(n, c),
         )
-        return {
+        out = {
             "rgb": color,
             "logits": sem_logits,
             "depth": rendering.expected_depth(weights, samples.t_mid),
@@ -168,13 +174,20 @@ class SRFModel(nn.Module):
             "samples": int(rays.numel()),
             "shaded": int(shade_rays.numel()),
         }
+        if not self.training:
+            tolerance = FLOATER_CELLS * self.config["detail_scene"] + samples.delta
+            out["significant"], out["floaters"] = rendering.floater_counts(
+                weights, samples.t_mid, tolerance, FLOATER_WEIGHT)
+        return out
 
     @torch.no_grad()
     def render_rays_chunked(self, origins, directions, chunk: int = 8192) -> dict:
         """Inference over many rays in chunks; returns CPU float32 tensors."""
-        outputs: dict[str, list] = {"rgb": [], "logits": [], "depth": [], "accumulation": []}
+        outputs: dict[str, list] = {"rgb": [], "logits": [], "depth": [], "accumulation": [],
+                                    "significant": [], "floaters": []}
         for start in range(0, origins.shape[0], chunk):
             out = self(origins[start:start + chunk], directions[start:start + chunk])
             for key in outputs:
-                outputs[key].append(out[key].float().cpu())
-        return {key: torch.cat(v) if v else torch.zeros(0) for key, v in outputs.items()}
+                if key in out:  # the floater counts exist in eval mode only
+                    outputs[key].append(out[key].float().cpu())
+        return {key: torch.cat(v) for key, v in outputs.items() if v}

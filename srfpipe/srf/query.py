@@ -85,6 +85,9 @@ class SemanticRadianceField:
             "semantic": out["logits"].sigmoid().numpy().reshape(height, width, -1).astype(np.float32),
             "depth": (out["depth"].numpy() / self.scale).reshape(height, width).astype(np.float32),
             "accumulation": out["accumulation"].numpy().reshape(height, width).astype(np.float32),
+            # per pixel: samples with weight > 0.03, and those of them off the surface (floaters)
+            "significant_samples": out["significant"].numpy().reshape(height, width).astype(np.float32),
+            "floater_samples": out["floaters"].numpy().reshape(height, width).astype(np.float32),
         }
 
     def semantic(self, points_world: np.ndarray) -> np.ndarray:

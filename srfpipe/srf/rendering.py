@@ -65,3 +65,24 @@ def expected_depth(weights: torch.Tensor, t_mid: torch.Tensor, eps: float = 1e-1
 def composite_background(value: torch.Tensor, acc: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
     """value + (1 - acc) * background: what the ray sees beyond the last sample."""
     return value + (1.0 - acc).unsqueeze(-1) * background.float()
+
+
+def median_depth(weights: torch.Tensor, t_mid: torch.Tensor) -> torch.Tensor:
+    """Depth where the accumulated weight first reaches half of the ray's total (…,); robust to
+    a faint haze that pulls the expected depth off the surface."""
+    cumulative = torch.cumsum(weights.float(), dim=-1)
+    half = 0.5 * cumulative[..., -1:]
+    index = torch.searchsorted(cumulative.contiguous(), half.contiguous()).clamp(max=t_mid.shape[-1] - 1)
+    return t_mid.float().gather(-1, index).squeeze(-1)
+
+
+def floater_counts(weights: torch.Tensor, t_mid: torch.Tensor, tolerance: torch.Tensor,
+                   min_weight: float = 0.03) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per ray: samples with weight > `min_weight`, and those of them farther than `tolerance`
+    (…, K) from the ray's median depth (floaters, fog in front of or behind the surface)."""
+    significant = weights > min_weight
+    if weights.shape[-1] == 0:
+        zeros = torch.zeros(weights.shape[:-1], device=weights.device)
+        return zeros, zeros
+    far = (t_mid.float() - median_depth(weights, t_mid).unsqueeze(-1)).abs() > tolerance
+    return significant.sum(-1).float(), (significant & far).sum(-1).float()

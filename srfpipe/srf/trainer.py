@@ -162,7 +162,8 @@ def sample_batch(data, train_views, count: int, generator, device):
     v = torch.randint(0, data.height, (count,), generator=generator)
     origins, directions = rays_for_pixels(data.poses_scene[image], data.intrinsics[image], u, v)
     rgb = data.images[image, v, u].float() / 255.0
-    labels = data.multihot[image, v, u].float() if data.multihot is not None else None
+    labels = (data.multihot[image, v, u].float() if data.multihot is not None
+              else torch.zeros(count, 0))
     return (origins.to(device), directions.to(device), image.to(device), rgb.to(device),
             None if labels is None else labels.to(device))
 
@@ -217,6 +218,58 @@ def remap_ground_truth(gt: np.ndarray, gt_classes: list[str], classes: list[str]
     return lookup[gt]
 
 
+REAL_CAPTURE_APPEARANCE_DIM = 8
+
+
+def resolve_data_defaults(options: dict, data) -> dict:
+    """The options whose default depends on the capture, resolved (and recorded as such).
+
+    appearance_dim: a real capture's images differ in exposure and white balance, which a
+    per-image embedding absorbs (Nerfacto, NeRF-W); a generated capture (it has ground truth)
+    has none, and the embedding would only add parameters.
+    """
+    options = dict(options)
+    if options.get("appearance_dim") is None:
+        options["appearance_dim"] = 0 if data.gt_label is not None else REAL_CAPTURE_APPEARANCE_DIM
+        log.info("appearance_dim %d (%s capture)", options["appearance_dim"],
+                 "generated" if data.gt_label is not None else "real")
+    return options
+
+
+class TrainingProgress:
+    """The training progress bar. With a time budget the run ends on the clock (usually long
+    before `iterations`), so the bar counts training seconds towards the budget and shows the
+    step beside it; without one it counts steps towards `iterations`."""
+
+    def __init__(self, start_step: int, iterations: int, seconds: float, time_budget: float):
+        from tqdm import tqdm
+
+        self.by_time = time_budget > 0
+        if self.by_time:
+            self.bar = tqdm(total=round(time_budget), initial=min(round(seconds), round(time_budget)),
+                            desc="train", unit="s", dynamic_ncols=True, mininterval=1.0,
+                            bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s [{elapsed}{postfix}]")
+        else:
+            self.bar = tqdm(total=iterations, initial=start_step, desc="train", unit="step",
+                            dynamic_ncols=True, mininterval=1.0)
+        self.postfix: dict = {}
+
+    def advance(self, step: int, seconds: float) -> None:
+        if self.by_time:
+            self.bar.update(min(seconds, self.bar.total) - self.bar.n)
+            self.postfix["step"] = step
+            self.bar.set_postfix(self.postfix, refresh=False)
+        else:
+            self.bar.update(step - self.bar.n)
+
+    def set_postfix(self, **values) -> None:
+        self.postfix.update(values)
+        self.bar.set_postfix(self.postfix, refresh=False)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
 # ----------------------------------------------------------------------------- training
 
 
@@ -239,12 +292,15 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
     device = choose_device(options.get("device", "auto"))
     data = load_posed_images(images, labels)
     if not data.classes:
-        raise ValueError(f"{labels}: no classes to train (attribute 'classes' is empty)")
+        log.info("no semantic classes: training geometry and colour only")
     train_views, heldout_views = split_views(data.count, holdout_every)
+    options = resolve_data_defaults(options, data)
     seed = int(options.get("seed", 0))
     iterations = int(options["iterations"])
     batch = int(options["rays_per_batch"])
     lambda_sem = float(options.get("lambda_sem", 1.0))
+    tv_density = float(options.get("tv_density", 0.0))
+    tv_features = float(options.get("tv_features", 0.0))
 
     torch.manual_seed(seed)
     config = build_model_config(options, data.bounds_world, data.scene_from_world, data.classes,
@@ -258,7 +314,7 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
         scaler = torch.amp.GradScaler("cuda")
         scaler_needed = True
 
-    inputs = [{"path": str(p), "created": read_provenance(p).get("created")} for p in (images, labels)]
+    inputs = [{"path": str(p), "created": read_provenance(p).get("created")} for p in (images, labels) if p is not None]
     fp = fingerprint(options, config, inputs + [{"holdout_every": holdout_every}])
     ckpt_dir = Path(checkpoints) if checkpoints else out.with_name(out.name.removesuffix(".zarr") + ".ckpt")
     curve = {k: [] for k in ("step", "seconds", "loss", "photometric", "semantic", "psnr", "samples_per_ray", "shaded_per_ray", "occupied")}
@@ -298,10 +354,9 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
         return result
 
     model.train()
-    bar = tqdm(range(start_step, iterations), initial=start_step, total=iterations, desc="train",
-               dynamic_ncols=True, mininterval=1.0)
+    bar = TrainingProgress(start_step, iterations, train_seconds, time_budget)
     try:
-        for step in bar:
+        for step in range(start_step, iterations):
             tick = time.perf_counter()
             generator = step_generator(seed, step)
             if step > 0 and step % update_every == 0:
@@ -314,6 +369,12 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
             with autocast:
                 outputs = model(origins, directions, image, jitter)
             parts = losses.total_loss(outputs["rgb"], rgb, outputs["logits"], labels_batch, lambda_sem)
+            if tv_density and model.field.density_grid:
+                grid = model.field.inner_sigma
+                parts["loss"] = parts["loss"] + tv_density * losses.total_variation(grid.table, grid.resolution)
+            if tv_features and model.field.density_grid:
+                grid = model.field.inner
+                parts["loss"] = parts["loss"] + tv_features * losses.total_variation(grid.table, grid.resolution)
             optimizer.zero_grad(set_to_none=True)
             if scaler_needed:
                 scaler.scale(parts["loss"]).backward()
@@ -324,6 +385,7 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
                 optimizer.step()
             train_seconds += time.perf_counter() - tick
             done = step + 1
+            bar.advance(done, train_seconds)
             if done % log_every == 0 or done == iterations:
                 photo = float(parts["photometric"].detach())
                 record = {
@@ -368,7 +430,7 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
     summary = {"iterations": iterations_done, "train_seconds": train_seconds, "precision": precision,
                "device": str(device)}
     io.write_srf(
-        out, model, config=options, inputs=[images, labels], curve=curve,
+        out, model, config=options, inputs=[p for p in (images, labels) if p is not None], curve=curve,
         eval_curve={k: v for k, v in eval_curve.items() if v} if eval_curve["step"] else None,
         classes=data.classes, scene_from_world=data.scene_from_world, world_from_scene=data.world_from_scene,
         bounds_world=data.bounds_world, scene_scale=scale, holdout_every=holdout_every,
