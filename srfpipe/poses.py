@@ -38,7 +38,7 @@ from srfpipe.config import ConfigError, add_options_arguments, stage_options, va
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("orchard", "nerfstudio", "blender", "colmap")
+FORMATS = ("orchard", "plant", "nerfstudio", "blender", "colmap")
 BLENDER_SPLITS = ("train", "val", "test")
 POINT_PERCENTILES = (1.0, 99.0)
 POINT_MARGIN = 0.05  # fraction of the percentile box added on every side
@@ -221,12 +221,15 @@ def read_nerfstudio(path: str | Path, source_format: str = "nerfstudio") -> Capt
     if not isinstance(frames, list) or not frames:
         raise ValueError(f"{json_path}: 'frames' must be a non-empty list")
 
-    image_paths, poses, intrinsics, sizes, distortion = [], [], [], [], []
+    image_paths, poses, intrinsics, sizes, distortion, missing = [], [], [], [], [], []
     for index, frame in enumerate(frames):
         where = f"{json_path}: frames[{index}]"
         if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
             raise ValueError(f"{where}: needs 'file_path' and 'transform_matrix'")
         relative = resolve_inside(root, frame["file_path"], where)
+        if not (root / relative).exists():
+            missing.append(relative)  # real captures list frames that were later deleted
+            continue
         check_image_file(root / relative, where)
         where = f"{where} ({relative})"
         poses.append(_pose_matrix(frame["transform_matrix"], where))
@@ -236,12 +239,17 @@ def read_nerfstudio(path: str | Path, source_format: str = "nerfstudio") -> Capt
         sizes.append(size)
         distortion.append(dist)
 
+    extra = {"n_frames_listed": len(frames), "missing_images": missing}
+    if missing:
+        log.warning("%s: skipped %d of %d frames whose image does not exist: %s", json_path, len(missing),
+                    len(frames), ", ".join(missing))
+    if not image_paths:
+        raise FileNotFoundError(f"{json_path}: none of the {len(frames)} frames has an image file")
     camera_to_world = cameras.opengl_to_opencv(np.stack(poses))
     points = None
     if meta.get("ply_file_path"):
         ply = root / resolve_inside(root, meta["ply_file_path"], f"{json_path}: ply_file_path")
         points = _read_ply_points(ply)
-    extra = {}
     if "applied_transform" in meta:
         # transform_matrix = applied_transform @ original camera_to_world: undo it.
         applied = _similarity_4x4(meta["applied_transform"], f"{json_path}: applied_transform")
@@ -444,7 +452,7 @@ def load_capture(source: dict, capture_dir: str | Path | None = None) -> Capture
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: capture does not exist")
-    if fmt in ("nerfstudio", "orchard"):
+    if fmt in ("nerfstudio", "orchard", "plant"):
         capture = read_nerfstudio(path, source_format=fmt)
     elif fmt == "blender":
         capture = read_blender(path)
@@ -649,6 +657,12 @@ def import_poses(source: dict, capture_dir: str | Path | None, options: dict, ou
     source = validate_scene({"source": source}, "source")["source"]
     options = validate_scene({"poses": dict(options)}, "poses options")["poses"]
     capture = load_capture(source, capture_dir)
+    if len(capture) < options["min_images"]:
+        missing = capture.extra.get("missing_images") or []
+        raise ValueError(
+            f"{capture.source_file}: only {len(capture)} of {capture.extra.get('n_frames_listed', len(capture))} "
+            f"frames have an image ({len(missing)} missing), fewer than poses.min_images={options['min_images']}"
+            + (f"; missing: {', '.join(missing)}" if missing else ""))
     log.info("imported %d images (%s) from %s", len(capture), capture.source_format, capture.source_file)
 
     poses = capture.camera_to_world

@@ -272,10 +272,27 @@ def test_bounds_from_frusta_ring_gives_box_around_target():
 # ----------------------------------------------------------------------------- bad inputs
 
 
-def test_missing_image_names_file(tmp_path):
-    write_nerfstudio(tmp_path, ring(3))
-    (tmp_path / "images" / "frame_00001.png").unlink()
-    with pytest.raises(FileNotFoundError, match=r"transforms.json.*frame_00001.png does not exist"):
+def test_missing_images_are_skipped_listed_and_recorded(tmp_path, caplog):
+    write_nerfstudio(tmp_path / "cap", ring(6))
+    for i in (1, 4):
+        (tmp_path / "cap" / "images" / f"frame_{i:05d}.png").unlink()
+    out = import_poses({"format": "nerfstudio", "path": str(tmp_path / "cap")}, None, {}, tmp_path / "poses.zarr")
+    info = meta(open_artifact(out, stage="poses"))
+    assert info["n_images"] == 4 and info["n_frames_listed"] == 6
+    assert info["missing_images"] == ["images/frame_00001.png", "images/frame_00004.png"]
+    assert "skipped 2 of 6 frames" in caplog.text and "frame_00004.png" in caplog.text
+
+
+def test_too_few_images_left_is_an_error_naming_the_file(tmp_path):
+    write_nerfstudio(tmp_path, ring(4))
+    for i in (0, 1, 2):
+        (tmp_path / "images" / f"frame_{i:05d}.png").unlink()
+    with pytest.raises(ValueError, match=r"transforms.json: only 1 of 4 frames have an image \(3 missing\)"):
+        import_poses({"format": "nerfstudio", "path": str(tmp_path)}, None, {}, tmp_path / "poses.zarr")
+    assert not (tmp_path / "poses.zarr").exists()
+    for name in (tmp_path / "images").iterdir():
+        name.unlink()
+    with pytest.raises(FileNotFoundError, match="none of the 4 frames has an image"):
         load_capture({"format": "nerfstudio", "path": str(tmp_path)})
 
 
@@ -352,7 +369,7 @@ def test_cli_reports_bad_input_in_one_line(tmp_path, capsys):
                  "--out", str(tmp_path / "poses.zarr")])
     assert code == 1
     err = capsys.readouterr().err
-    assert "srfpipe poses: error:" in err and "frame_00002.png does not exist" in err
+    assert "srfpipe poses: error:" in err and "frame_00002.png" in err
     assert not (tmp_path / "poses.zarr").exists()
 
 
