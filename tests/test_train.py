@@ -205,10 +205,15 @@ def test_appearance_is_on_by_default_for_real_captures_only():
 
     from srfpipe.srf.trainer import resolve_data_defaults
 
-    real, generated = SimpleNamespace(gt_label=None), SimpleNamespace(gt_label=np.zeros((1, 2, 2)))
+    real = SimpleNamespace(gt_label=None, bounds_source="points")
+    generated = SimpleNamespace(gt_label=np.zeros((1, 2, 2)), bounds_source="ground_truth")
     assert resolve_data_defaults({"appearance_dim": None}, real)["appearance_dim"] == 8
     assert resolve_data_defaults({"appearance_dim": None}, generated)["appearance_dim"] == 0
     assert resolve_data_defaults({"appearance_dim": 4}, real)["appearance_dim"] == 4
+    # estimated bounds start clearer (less fog to fit the views with) than known ones
+    assert resolve_data_defaults({"initial_opacity": None}, real)["initial_opacity"] == 0.001
+    assert resolve_data_defaults({"initial_opacity": None}, generated)["initial_opacity"] == 0.01
+    assert resolve_data_defaults({"initial_opacity": 0.05}, real)["initial_opacity"] == 0.05
 
 
 def test_progress_bar_counts_seconds_of_a_time_budget():

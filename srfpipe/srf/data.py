@@ -35,6 +35,7 @@ class PosedImages:
     world_from_scene: np.ndarray
     bounds_world: np.ndarray
     provenance: dict
+    bounds_source: str | None = None  # where bounds_world came from (config, ground_truth, mask_hull, ...)
 
     @property
     def count(self) -> int:
@@ -88,6 +89,7 @@ def load_posed_images(images_path, labels_path=None) -> PosedImages:
     bounds = np.asarray(attrs.get("bounds_world"), dtype=np.float64)
     if bounds.shape != (2, 3):
         raise ValueError(f"{images_path}: attribute bounds_world must be [[min xyz], [max xyz]]")
+    bounds_source = attrs.get("bounds_source")
     gt_label = gt_classes = None
     if "ground_truth" in group and "labels" in group["ground_truth"]:
         gt_label = np.asarray(group["ground_truth"]["labels"][...])
@@ -115,6 +117,7 @@ def load_posed_images(images_path, labels_path=None) -> PosedImages:
             if bounds.shape != (2, 3) or not np.all(bounds[1] > bounds[0]):
                 raise ValueError(f"{labels_path}: attribute bounds_world must be [[min xyz], [max xyz]] with min < max")
             scene_from_world = scene_from_world_transform(bounds[0], bounds[1])
+            bounds_source = lattrs.get("bounds_source", bounds_source)
             world_from_scene = np.linalg.inv(scene_from_world)
         if "label" in lgroup:
             label = np.asarray(lgroup["label"][...])
@@ -134,7 +137,7 @@ def load_posed_images(images_path, labels_path=None) -> PosedImages:
         intrinsics=torch.from_numpy(intrinsics).float(),
         width=w, height=h, names=[str(x) for x in attrs.get("names", [str(i) for i in range(n)])],
         classes=classes, scene_from_world=scene_from_world, world_from_scene=world_from_scene,
-        bounds_world=bounds, provenance=attrs,
+        bounds_world=bounds, provenance=attrs, bounds_source=bounds_source,
     )
 
 

@@ -72,7 +72,7 @@ def build_model_config(options: dict, bounds_world, scene_from_world, classes: l
     density_grid = bool(options.get("density_grid", encoding == "dense"))
     step = detail_scene * float(options.get("step_ratio", 1.0))
     # initial opacity per step of the density grid: faintly foggy, so every cell gets gradients
-    density_bias = math.log(float(options.get("initial_opacity", 0.01)) / step) if density_grid else -1.0
+    density_bias = math.log(float(options.get("initial_opacity") or 0.01) / step) if density_grid else -1.0
     occupancy_resolution = [max(int(math.ceil((r - 1) / 2)), 1) for r in resolution]
     return {
         "box_min": box_min.tolist(), "box_max": box_max.tolist(),

@@ -219,16 +219,28 @@ def remap_ground_truth(gt: np.ndarray, gt_classes: list[str], classes: list[str]
 
 
 REAL_CAPTURE_APPEARANCE_DIM = 8
+# Bounds the user or the capture's ground truth gave: a box filled with the scene's matter. Other
+# bounds are estimates (frusta, points, the masks' hull plus a margin): most of the box and all
+# of the contracted shell are empty there, and a field that starts as a faint fog keeps fog that
+# fits the training views (built-in plant, 2 min: held-out 13.9 dB at opacity 0.01 per step,
+# 26.3 dB at 0.001; the fox 19.2 vs 19.0 dB with the grid 84 % vs 23 % occupied).
+TRUSTED_BOUNDS = ("config", "ground_truth")
 
 
 def resolve_data_defaults(options: dict, data) -> dict:
     """The options whose default depends on the capture, resolved (and recorded as such).
 
+    initial_opacity: 0.01 per step when the bounds are known (config, ground truth), 0.001 when
+    they were estimated (see TRUSTED_BOUNDS).
     appearance_dim: a real capture's images differ in exposure and white balance, which a
     per-image embedding absorbs (Nerfacto, NeRF-W); a generated capture (it has ground truth)
     has none, and the embedding would only add parameters.
     """
     options = dict(options)
+    if options.get("initial_opacity") is None:
+        trusted = data.bounds_source in TRUSTED_BOUNDS
+        options["initial_opacity"] = 0.01 if trusted else 0.001
+        log.info("initial_opacity %g (bounds from %s)", options["initial_opacity"], data.bounds_source)
     if options.get("appearance_dim") is None:
         options["appearance_dim"] = 0 if data.gt_label is not None else REAL_CAPTURE_APPEARANCE_DIM
         log.info("appearance_dim %d (%s capture)", options["appearance_dim"],
