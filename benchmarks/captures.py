@@ -110,6 +110,9 @@ def main() -> int:
     parser.add_argument("--quick", action="store_true", help="60 s of training, no COLMAP refinement")
     parser.add_argument("--workdir", type=Path, default=REPO / "benchmarks" / "work" / "captures")
     parser.add_argument("--scenes", nargs="+", default=["fox", "plant", "orchard"])
+    parser.add_argument("--snakemake-args", nargs=argparse.REMAINDER, default=[],
+                        help="more Snakemake arguments (last), e.g. --rerun-triggers mtime to keep a "
+                             "finished COLMAP refinement after a schema default changed")
     args = parser.parse_args()
     if "fox" in args.scenes and not (FOX / "transforms.json").exists():
         parser.error(f"{FOX}: the fox capture is not there (../shared/data/fox beside the repository)")
@@ -118,7 +121,7 @@ def main() -> int:
     write_workdir(args.workdir, scenes, "occupancy")
     targets = [f"results/{name}/{artifact}" for name in scenes for artifact in ("eval", "occupancy.zarr")]
     try:  # --keep-going: one failing scene must not hide the others' numbers
-        seconds = run_workflow(args.workdir, targets, log=args.workdir / "snakemake.log", extra=("--keep-going",))
+        seconds = run_workflow(args.workdir, targets, log=args.workdir / "snakemake.log", extra=("--keep-going", *args.snakemake_args))
     except subprocess.CalledProcessError:
         seconds = None
         print(f"some jobs failed: see {args.workdir / 'snakemake.log'} and {args.workdir / 'logs'}")

@@ -364,7 +364,8 @@ def test_cli_reports_bad_input_in_one_line(tmp_path, capsys):
     from srfpipe.cli import main
 
     write_nerfstudio(tmp_path / "cap", ring(3))
-    (tmp_path / "cap" / "images" / "frame_00002.png").unlink()
+    for i in (1, 2):
+        (tmp_path / "cap" / "images" / f"frame_{i:05d}.png").unlink()
     code = main(["poses", "--source", json.dumps({"format": "nerfstudio"}), "--capture", str(tmp_path / "cap"),
                  "--out", str(tmp_path / "poses.zarr")])
     assert code == 1
