@@ -42,7 +42,8 @@ def scenes(orchard: dict) -> dict:
 
 def evaluate(workdir: Path) -> dict:
     from srfpipe.artifacts import meta, open_artifact
-    from srfpipe.poses import pose_errors, read_nerfstudio
+    from srfpipe.poses.align import pose_errors
+    from srfpipe.poses.nerfstudio import read_nerfstudio
 
     truth = read_nerfstudio(workdir / "results" / "refined" / "capture").camera_to_world
     results = {}

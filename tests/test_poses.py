@@ -374,6 +374,41 @@ def test_cli_reports_bad_input_in_one_line(tmp_path, capsys):
     assert not (tmp_path / "poses.zarr").exists()
 
 
+# ----------------------------------------------------------------------------- package structure
+
+# Each module of srfpipe/poses may import only modules before it: the importers and the bounds build
+# on `capture`, the refinement on `align`, and only the stage ties everything together.
+POSES_MODULE_ORDER = ["capture", "bounds", "align", "nerfstudio", "blender", "colmap", "ground_truth",
+                      "colmap_refine", "stage"]
+
+
+def poses_imports(path: Path) -> set[str]:
+    """The srfpipe.poses names a module imports, anywhere in it (function-level imports too)."""
+    import ast
+
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("srfpipe.poses"):
+            found.add(node.module)
+        elif isinstance(node, ast.ImportFrom) and node.module == "srfpipe":
+            found.update(f"srfpipe.{alias.name}" for alias in node.names if alias.name == "poses")
+        elif isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names if alias.name.startswith("srfpipe.poses"))
+    return found
+
+
+def test_poses_modules_import_one_way():
+    import srfpipe.poses
+
+    folder = Path(srfpipe.poses.__file__).parent
+    assert sorted(p.stem for p in folder.glob("*.py") if p.stem != "__init__") == sorted(POSES_MODULE_ORDER)
+    for position, name in enumerate(POSES_MODULE_ORDER):
+        for imported in poses_imports(folder / f"{name}.py"):
+            assert imported != "srfpipe.poses", f"{name}.py imports the package itself (a cycle through __init__)"
+            target = imported.removeprefix("srfpipe.poses.")
+            assert POSES_MODULE_ORDER.index(target) < position, f"{name}.py imports {target}.py, which comes later"
+
+
 # ----------------------------------------------------------------------------- perturbation and errors
 
 

@@ -33,6 +33,8 @@ from pathlib import Path
 import numpy as np
 
 from srfpipe import cameras
+from srfpipe.poses.align import align_poses
+from srfpipe.poses.capture import Capture
 
 log = logging.getLogger(__name__)
 
@@ -206,10 +208,10 @@ def _summary(reconstruction) -> dict:
     }
 
 
-def refine_poses(capture, camera_to_world: np.ndarray, matcher: str = "auto",
+def refine_poses(capture: Capture, camera_to_world: np.ndarray, matcher: str = "auto",
                  workdir_parent: str | Path | None = None, threads: int = -1,
                  max_features: int = 8192) -> RefinementResult:
-    """Refine `camera_to_world` (N, 4, 4) for the images of `capture` (a `srfpipe.poses.Capture`).
+    """Refine `camera_to_world` (N, 4, 4) for the images of `capture`.
 
     Intermediate files (database, models) go to a temporary folder under `workdir_parent`.
     """
@@ -279,8 +281,6 @@ def refine_poses(capture, camera_to_world: np.ndarray, matcher: str = "auto",
         )
     # Bundle adjustment drifts the gauge: map the refined cameras back onto the given ones,
     # using only the cameras that bundle adjustment could actually constrain.
-    from srfpipe.poses import align_poses
-
     world_from_refined = align_poses(refined[constrained], camera_to_world[constrained])
     refined = cameras.transform_poses(world_from_refined, refined)
     refined[~constrained] = camera_to_world[~constrained]  # a pose seen through a handful of points is noise

@@ -1,0 +1,57 @@
+"""Blender NeRF synthetic importer: `transforms_{train,val,test}.json`.
+
+OpenGL cameras, `camera_angle_x`, the image size read from the image files, and a `file_path`
+without extension gets `.png` (as the Blender NeRF scenes list their frames).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from srfpipe import cameras
+from srfpipe.poses.capture import Capture, load_json, orthonormalize, pose_matrix, read_image_size, resolve_inside
+
+BLENDER_SPLITS = ("train", "val", "test")
+
+
+def read_blender(path: str | Path) -> Capture:
+    """Read a Blender NeRF synthetic capture: `path` holds transforms_{train,val,test}.json."""
+    root = Path(path)
+    split_files = [root / f"transforms_{split}.json" for split in BLENDER_SPLITS]
+    split_files = [f for f in split_files if f.exists()]
+    if not split_files:
+        raise FileNotFoundError(f"{root}: no transforms_train/val/test.json (is it a Blender NeRF capture?)")
+    image_paths, poses, intrinsics, sizes, splits = [], [], [], [], []
+    for json_path in split_files:
+        meta = load_json(json_path)
+        frames = meta.get("frames")
+        if not isinstance(frames, list) or not frames:
+            raise ValueError(f"{json_path}: 'frames' must be a non-empty list")
+        if "camera_angle_x" not in meta:
+            raise ValueError(f"{json_path}: missing camera_angle_x")
+        angle = float(meta["camera_angle_x"])
+        for index, frame in enumerate(frames):
+            where = f"{json_path}: frames[{index}]"
+            if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
+                raise ValueError(f"{where}: needs 'file_path' and 'transform_matrix'")
+            file_path = str(frame["file_path"])
+            if not Path(file_path).suffix:
+                file_path += ".png"  # Blender NeRF lists frames without the extension
+            relative = resolve_inside(root, file_path, where)
+            width, height = read_image_size(root / relative, where)
+            poses.append(pose_matrix(frame["transform_matrix"], f"{where} ({relative})"))
+            focal = 0.5 * width / np.tan(0.5 * angle)
+            image_paths.append(relative)
+            intrinsics.append([focal, focal, width / 2.0, height / 2.0])
+            sizes.append((width, height))
+            splits.append(json_path.stem.removeprefix("transforms_"))
+    n = len(image_paths)
+    return Capture(
+        root=root, image_paths=image_paths,
+        camera_to_world=orthonormalize(cameras.opengl_to_opencv(np.stack(poses))),
+        intrinsics=np.asarray(intrinsics), image_size=np.asarray(sizes, dtype=np.int32),
+        distortion=np.zeros((n, 4)), source_format="blender", source_file=split_files[0],
+        extra={"splits": splits},
+    )

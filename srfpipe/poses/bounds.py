@@ -1,0 +1,102 @@
+"""Scene bounds: a (2, 3) world box [[xmin, ymin, zmin], [xmax, ymax, zmax]] the scene lives in.
+
+First that applies (`resolve_bounds`): `poses.bounds` from the config; the capture's own
+`ground_truth/scene.json` `bounds_world` (orchard); sparse points (1-99 % percentiles + 5 %
+margin); the camera frusta (`bounds_from_frusta`). The labels stage may later replace estimated
+bounds with the masks' visual hull (`srfpipe/segment/hull.py`).
+
+Each estimator is one small function of plain arrays returning a (2, 3) box, so that another
+source of bounds is one more function and one more branch in `resolve_bounds`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from srfpipe import cameras
+from srfpipe.poses.capture import Capture
+
+POINT_PERCENTILES = (1.0, 99.0)
+POINT_MARGIN = 0.05  # fraction of the percentile box added on every side
+MIN_POINTS_FOR_BOUNDS = 20
+
+
+def check_bounds(value, where: str) -> np.ndarray:
+    """`value` as a finite (2, 3) float64 box with min < max on every axis; error naming `where`."""
+    bounds = np.asarray(value, dtype=np.float64)
+    if bounds.shape != (2, 3) or not np.all(np.isfinite(bounds)) or np.any(bounds[1] <= bounds[0]):
+        raise ValueError(f"{where}: bounds must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with min < max, got {value}")
+    return bounds
+
+
+def bounds_from_points(points: np.ndarray) -> np.ndarray:
+    """(2, 3) box of the 1-99 % percentiles of sparse points, widened by 5 % per side (outliers ignored)."""
+    low, high = np.percentile(points, POINT_PERCENTILES, axis=0)
+    margin = POINT_MARGIN * (high - low)
+    margin = np.maximum(margin, 1e-3 * max(float(np.max(high - low)), 1e-9))  # flat point sets
+    return np.stack([low - margin, high + margin])
+
+
+def focus_point(camera_to_world: np.ndarray) -> np.ndarray:
+    """The point closest (least squares) to every camera's optical axis: what the cameras look at.
+
+    When the axes are (nearly) parallel, as in a forward-facing capture, there is no such point;
+    then it is the mean camera centre moved forward along the mean viewing direction by the spread
+    of the camera centres (at least 1 world unit).
+    """
+    centres = camera_to_world[:, :3, 3]
+    axes = camera_to_world[:, :3, 2]
+    projectors = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]  # I - d d^T per camera
+    a = projectors.sum(0)
+    b = np.einsum("nij,nj->i", projectors, centres)
+    eigenvalues = np.linalg.eigvalsh(a)
+    if eigenvalues[0] > 1e-2 * eigenvalues[-1]:
+        point = np.linalg.solve(a, b)
+        # the axes must meet in front of the cameras, not behind them
+        if np.median(np.einsum("ni,ni->n", point[None] - centres, axes)) > 0:
+            return point
+    spread = max(float(np.linalg.norm(centres - centres.mean(0), axis=1).max()), 1.0)
+    direction = axes.mean(0) / max(np.linalg.norm(axes.mean(0)), 1e-9)
+    return centres.mean(0) + spread * direction
+
+
+def bounds_from_frusta(
+    camera_to_world: np.ndarray, intrinsics: np.ndarray, image_size: np.ndarray,
+    visible_fraction: float = 0.9, resolution: int = 40,
+) -> np.ndarray:
+    """(2, 3) box of the region (nearly) every camera sees, for captures without sparse points.
+
+    Heuristic: take the cameras' focus point (`focus_point`) and a cube around it whose half-size
+    is the median camera distance to it; sample the cube on a grid and keep the points that
+    project inside the image, in front of the camera, for at least `visible_fraction` of the
+    cameras (the intersection of the frusta, tolerant to a few stray views). For cameras on a ring
+    around an object this is the object's neighbourhood; the box is the kept points' extent plus
+    one grid cell. When fewer than 8 points are seen by enough cameras, the box is the focus
+    point +- half the median camera distance.
+    """
+    focus = focus_point(camera_to_world)
+    radius = float(np.median(np.linalg.norm(camera_to_world[:, :3, 3] - focus, axis=1)))
+    radius = max(radius, 1e-6)
+    ticks = np.linspace(-radius, radius, resolution)
+    grid = np.stack(np.meshgrid(ticks, ticks, ticks, indexing="ij"), -1).reshape(-1, 3) + focus
+    seen = np.zeros(len(grid), dtype=np.int32)
+    for pose, k, (width, height) in zip(camera_to_world, intrinsics, image_size):
+        uv, depth = cameras.project_points(grid, pose, k)
+        seen += (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= width) & (uv[:, 1] >= 0) & (uv[:, 1] <= height)
+    kept = grid[seen >= visible_fraction * len(camera_to_world)]
+    if len(kept) < 8:
+        return np.stack([focus - radius / 2, focus + radius / 2])
+    cell = ticks[1] - ticks[0]
+    return np.stack([kept.min(0) - cell, kept.max(0) + cell])
+
+
+def resolve_bounds(capture: Capture, camera_to_world: np.ndarray, points: np.ndarray | None,
+                   override) -> tuple[np.ndarray, str]:
+    """Scene bounds and where they came from: config | ground_truth | points | frusta."""
+    if override is not None:
+        return check_bounds(override, "poses.bounds"), "config"
+    if capture.ground_truth_bounds is not None:
+        return capture.ground_truth_bounds, "ground_truth"
+    if points is not None and len(points) >= MIN_POINTS_FOR_BOUNDS:
+        return bounds_from_points(points), "points"
+    return bounds_from_frusta(camera_to_world, capture.intrinsics, capture.image_size), "frusta"

@@ -1,0 +1,147 @@
+"""The imported capture (`Capture`) and the checked helpers every importer shares.
+
+A `Capture` is in the project's convention (OpenCV camera, `camera_to_world`, see
+`srfpipe.cameras`); the importers convert at the border. Every check raises with the file (and
+frame) it found the problem in.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from srfpipe import cameras
+
+
+@dataclass
+class Capture:
+    """Posed images as imported, in the project convention (OpenCV camera, camera_to_world)."""
+
+    root: Path  # the capture folder; every image lies inside it
+    image_paths: list[str]  # relative to root, POSIX separators
+    camera_to_world: np.ndarray  # (N, 4, 4)
+    intrinsics: np.ndarray  # (N, 4) fx, fy, cx, cy at full resolution
+    image_size: np.ndarray  # (N, 2) width, height
+    distortion: np.ndarray  # (N, 4) OpenCV k1, k2, p1, p2
+    source_format: str
+    source_file: Path  # the file (or model folder) the poses came from, for error messages
+    points_world: np.ndarray | None = None  # (M, 3) sparse points
+    ground_truth: Path | None = None
+    ground_truth_bounds: np.ndarray | None = None  # (2, 3) from ground_truth/scene.json
+    extra: dict = field(default_factory=dict)  # format-specific provenance
+
+    @property
+    def names(self) -> list[str]:
+        """One name per frame: the image file's stem, or its relative path without suffix when stems repeat."""
+        stems = [Path(p).stem for p in self.image_paths]
+        if len(set(stems)) == len(stems):
+            return stems
+        return [str(Path(p).with_suffix("")) for p in self.image_paths]
+
+    def __len__(self) -> int:
+        return len(self.image_paths)
+
+
+def load_json(path: Path) -> dict:
+    """A JSON file whose top level is an object; errors name the file."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: file does not exist")
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc})") from exc
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a JSON object at the top level")
+    return data
+
+
+def resolve_inside(root: Path, file_path: str, referenced_from: Path | str) -> str:
+    """`file_path` (relative to `root`, or absolute) as a POSIX path relative to `root`.
+
+    The check is lexical (`..` and absolute paths), so a dataset may hold symlinked image folders,
+    but a path that names a location outside the dataset folder is refused.
+    """
+    root_abs = os.path.normpath(os.path.abspath(root))
+    full = os.path.normpath(os.path.join(root_abs, os.path.expanduser(str(file_path))))
+    if os.path.commonpath([root_abs, full]) != root_abs or full == root_abs:
+        raise ValueError(
+            f"{referenced_from}: file_path {file_path!r} points outside the dataset folder {root_abs}"
+        )
+    return Path(os.path.relpath(full, root_abs)).as_posix()
+
+
+def check_image_file(path: Path, referenced_from: Path | str) -> None:
+    """The image exists and OpenCV recognises its format (header only; decoding happens at downscale)."""
+    import cv2
+
+    if not path.is_file():
+        raise FileNotFoundError(f"{referenced_from}: image {path} does not exist")
+    if not cv2.haveImageReader(str(path)):
+        raise ValueError(f"{path}: corrupt or unsupported image (OpenCV cannot read its header)")
+
+
+def read_image_size(path: Path, referenced_from: Path | str) -> tuple[int, int]:
+    """(width, height) of an image file, decoding it with OpenCV (Blender, or nerfstudio without w/h)."""
+    import cv2
+
+    check_image_file(path, referenced_from)
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise ValueError(f"{path}: corrupt image (OpenCV could not decode it)")
+    return int(image.shape[1]), int(image.shape[0])
+
+
+def pose_matrix(value, where: str) -> np.ndarray:
+    """A 4x4 (or 3x4) pose from JSON, as a float64 4x4 with a checked rotation."""
+    try:
+        matrix = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{where}: transform_matrix is not a numeric matrix ({exc})") from exc
+    if matrix.shape == (3, 4):
+        matrix = np.vstack([matrix, [0.0, 0.0, 0.0, 1.0]])
+    if matrix.shape != (4, 4):
+        raise ValueError(f"{where}: transform_matrix must be 4x4 (or 3x4), got shape {matrix.shape}")
+    check_pose(matrix, where)
+    return matrix
+
+
+def check_pose(camera_to_world: np.ndarray, where: str) -> None:
+    """Raise ValueError (naming `where`) unless the pose has a finite translation and a proper rotation."""
+    if not np.all(np.isfinite(camera_to_world)):
+        raise ValueError(f"{where}: pose contains NaN or infinite values")
+    problem = cameras.check_rotation(camera_to_world[:3, :3])
+    if problem:
+        raise ValueError(f"{where}: pose rotation {problem}")
+
+
+def orthonormalize(camera_to_world: np.ndarray) -> np.ndarray:
+    """Project the rotation blocks onto the nearest rotations (removes float noise of text formats)."""
+    poses = np.array(camera_to_world, dtype=np.float64, copy=True)
+    u, _, vt = np.linalg.svd(poses[:, :3, :3])
+    poses[:, :3, :3] = u @ vt
+    poses[:, 3, :] = [0.0, 0.0, 0.0, 1.0]
+    return poses
+
+
+def validate_capture(capture: Capture) -> None:
+    """Per-frame arrays agree in length and hold sane values; errors name the source file."""
+    n = len(capture.image_paths)
+    arrays = {"camera_to_world": capture.camera_to_world, "intrinsics": capture.intrinsics,
+              "image_size": capture.image_size, "distortion": capture.distortion}
+    for name, array in arrays.items():
+        if len(array) != n:
+            raise ValueError(f"{capture.source_file}: mismatched counts: {len(array)} {name} for {n} images")
+    for i, path in enumerate(capture.image_paths):
+        where = f"{capture.source_file}: {path}"
+        check_pose(capture.camera_to_world[i], where)
+        fx, fy, cx, cy = capture.intrinsics[i]
+        if not (np.all(np.isfinite(capture.intrinsics[i])) and fx > 0 and fy > 0):
+            raise ValueError(f"{where}: invalid intrinsics {capture.intrinsics[i].tolist()}")
+        if np.any(capture.image_size[i] <= 0):
+            raise ValueError(f"{where}: invalid image size {capture.image_size[i].tolist()}")
+        if not np.all(np.isfinite(capture.distortion[i])):
+            raise ValueError(f"{where}: distortion contains NaN or infinite values")

@@ -1,0 +1,163 @@
+"""Import camera poses (nerfstudio | blender | colmap | orchard), optionally refine them with COLMAP.
+
+Writes `poses.zarr` (see docs/artifacts.md): world-frame `camera_to_world` in the project's OpenCV
+camera convention (`srfpipe.cameras`), full-resolution intrinsics and OpenCV distortion, optional
+sparse points, and the scene normalization `scene_from_world` that maps the scene bounds into
+[-1, 1]^3. The importers live beside this module (one per format); this is the stage that
+dispatches to them, and the only module of the package that the CLI runs.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from srfpipe import cameras
+from srfpipe.config import ConfigError, add_options_arguments, stage_options, validate_scene
+from srfpipe.poses.align import perturb_poses
+from srfpipe.poses.blender import read_blender
+from srfpipe.poses.bounds import resolve_bounds
+from srfpipe.poses.capture import Capture, validate_capture
+from srfpipe.poses.colmap import read_colmap
+from srfpipe.poses.colmap_refine import refine_poses
+from srfpipe.poses.ground_truth import attach_ground_truth
+from srfpipe.poses.nerfstudio import read_nerfstudio
+
+log = logging.getLogger(__name__)
+
+FORMATS = ("orchard", "plant", "nerfstudio", "blender", "colmap")
+
+
+def load_capture(source: dict, capture_dir: str | Path | None = None) -> Capture:
+    """Import the capture described by a scene's `source` section; `capture_dir` overrides `source.path`."""
+    fmt = source.get("format")
+    path = capture_dir if capture_dir is not None else source.get("path")
+    if fmt not in FORMATS:
+        raise ValueError(f"{path}: unknown capture format {fmt!r} (expected one of {', '.join(FORMATS)})")
+    if path is None:
+        raise ValueError(f"source: format {fmt} needs a capture path")
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: capture does not exist")
+    if fmt in ("nerfstudio", "orchard", "plant"):
+        capture = read_nerfstudio(path, source_format=fmt)
+    elif fmt == "blender":
+        capture = read_blender(path)
+    else:
+        capture = read_colmap(path, source.get("images_dir"), source.get("model_dir"))
+    capture = attach_ground_truth(capture)
+    validate_capture(capture)
+    return capture
+
+
+def import_poses(source: dict, capture_dir: str | Path | None, options: dict, out: str | Path,
+                 threads: int = -1, progress: bool = True) -> Path:
+    """Import, optionally perturb and refine, normalize, and write `poses.zarr` atomically.
+
+    `source` and `options` are the scene's `source` and `poses` sections (defaults are filled in
+    by validation here); `capture_dir` overrides `source.path`.
+    """
+    from srfpipe.artifacts import create_artifact
+
+    source = dict(source)
+    where = capture_dir if capture_dir is not None else source.get("path", "source")
+    if source.get("format", "orchard") not in FORMATS:
+        raise ValueError(f"{where}: unknown capture format {source.get('format')!r} "
+                         f"(expected one of {', '.join(FORMATS)})")
+    if capture_dir is not None:
+        source.setdefault("path", str(capture_dir))
+    source = validate_scene({"source": source}, "source")["source"]
+    options = validate_scene({"poses": dict(options)}, "poses options")["poses"]
+    capture = load_capture(source, capture_dir)
+    if len(capture) < options["min_images"]:
+        missing = capture.extra.get("missing_images") or []
+        raise ValueError(
+            f"{capture.source_file}: only {len(capture)} of {capture.extra.get('n_frames_listed', len(capture))} "
+            f"frames have an image ({len(missing)} missing), fewer than poses.min_images={options['min_images']}"
+            + (f"; missing: {', '.join(missing)}" if missing else ""))
+    log.info("imported %d images (%s) from %s", len(capture), capture.source_format, capture.source_file)
+
+    poses = capture.camera_to_world
+    points = capture.points_world
+    bounds, bounds_source = resolve_bounds(capture, poses, points, options["bounds"])
+    scene_size = float(np.max(bounds[1] - bounds[0]))
+    perturbed = options["perturb_rot_deg"] > 0 or options["perturb_trans_frac"] > 0
+    if perturbed:
+        poses = perturb_poses(poses, options["perturb_rot_deg"], options["perturb_trans_frac"] * scene_size,
+                              options["perturb_seed"])
+        log.info("perturbed poses by %.3g deg and %.3g world units", options["perturb_rot_deg"],
+                 options["perturb_trans_frac"] * scene_size)
+
+    refinement = None
+    if options["refine"] == "colmap":
+        result = refine_poses(capture, poses, matcher=options["matcher"],
+                              workdir_parent=Path(out).parent, threads=threads)
+        poses, points, refinement = result.camera_to_world, result.points_world, result.stats
+        if bounds_source in ("points", "frusta"):
+            bounds, bounds_source = resolve_bounds(capture, poses, points, None)
+
+    scene_from_world = cameras.scene_from_world_transform(bounds[0], bounds[1])
+    config = {"source": source, "poses": options}
+    inputs = [str(Path(capture.root).resolve())]
+    with create_artifact(out, "poses", config=config, inputs=inputs) as group:
+        n = len(capture)
+        group.create_array("camera_to_world", data=poses.astype(np.float64), dimension_names=("image", "row", "col"))
+        group.create_array("intrinsics", data=capture.intrinsics.astype(np.float64), dimension_names=("image", "k"))
+        group.create_array("image_size", data=capture.image_size.astype(np.int32), dimension_names=("image", "wh"))
+        group.create_array("distortion", data=capture.distortion.astype(np.float64), dimension_names=("image", "k"))
+        if points is not None and len(points):
+            group.create_array("points_world", data=points.astype(np.float32), dimension_names=("point", "xyz"))
+        from srfpipe.artifacts import update_attrs
+
+        update_attrs(
+            group,
+            capture_root=str(Path(capture.root).resolve()),
+            image_paths=capture.image_paths,
+            names=capture.names,
+            n_images=n,
+            scene_from_world=scene_from_world,
+            world_from_scene=np.linalg.inv(scene_from_world),
+            bounds_world=bounds,
+            bounds_source=bounds_source,
+            source_format=capture.source_format,
+            source_file=str(capture.source_file),
+            ground_truth=str(capture.ground_truth) if capture.ground_truth else None,
+            perturbed=perturbed,
+            refinement=refinement,
+            **capture.extra,
+        )
+    log.info("wrote %s: %d cameras, bounds %s (%s)", out, len(capture), bounds.round(3).tolist(), bounds_source)
+    return Path(out)
+
+
+def add_arguments(parser) -> None:
+    add_options_arguments(parser, "poses")
+    parser.add_argument(
+        "--source", metavar="JSON", default=None,
+        help="JSON object: the scene's 'source' section (format nerfstudio|blender|colmap|orchard, path, "
+        "images_dir, model_dir); overrides the --scene file's",
+    )
+    parser.add_argument("--capture", metavar="DIR", default=None,
+                        help="capture folder (overrides source.path; the orchard's generated capture)")
+    parser.add_argument("--out", required=True, metavar="ZARR", help="poses.zarr to write (atomically)")
+    parser.add_argument("--threads", type=int, default=-1, help="COLMAP threads (-1: all cores)")
+
+
+def run(args) -> int:
+    from srfpipe.config import load_scene
+
+    options = stage_options(args, "poses")
+    source = dict(load_scene(args.scene)["source"]) if args.scene else {}
+    if args.source:
+        try:
+            override = json.loads(args.source)
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"--source: not valid JSON ({exc})") from exc
+        if not isinstance(override, dict):
+            raise ConfigError("--source: must be a JSON object")
+        source.update(override)
+    import_poses(source, args.capture, options, args.out, threads=args.threads)
+    return 0
