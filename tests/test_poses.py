@@ -162,16 +162,21 @@ def test_nerfstudio_unsupported_camera_model_names_file(tmp_path):
         read_nerfstudio(tmp_path)
 
 
-def test_blender_import_reads_size_from_images_and_adds_png(tmp_path):
-    poses = ring(4)
-    angle = 0.6911
-    for split, frames in (("train", range(0, 3)), ("test", range(3, 4))):
+def write_blender(root: Path, poses: np.ndarray, angle: float, n_train: int) -> None:
+    """A Blender NeRF capture: the first `n_train` poses in the train split, the rest in test."""
+    for split, frames in (("train", range(0, n_train)), ("test", range(n_train, len(poses)))):
         names = [f"r_{i}.png" for i in frames]
-        write_noise_images(tmp_path / split, names, 40, 30, channels=4)  # Blender renders are RGBA
+        write_noise_images(root / split, names, 40, 30, channels=4)  # Blender renders are RGBA
         data = {"camera_angle_x": angle, "frames": [
             {"file_path": f"./{split}/r_{i}", "rotation": 0.0,
              "transform_matrix": cameras.opencv_to_opengl(poses[i]).tolist()} for i in frames]}
-        (tmp_path / f"transforms_{split}.json").write_text(json.dumps(data))
+        (root / f"transforms_{split}.json").write_text(json.dumps(data))
+
+
+def test_blender_import_reads_size_from_images_and_adds_png(tmp_path):
+    poses = ring(4)
+    angle = 0.6911
+    write_blender(tmp_path, poses, angle, n_train=3)
     capture = read_blender(tmp_path)
     assert capture.image_paths == ["train/r_0.png", "train/r_1.png", "train/r_2.png", "test/r_3.png"]
     np.testing.assert_allclose(capture.camera_to_world, poses, atol=1e-12)
@@ -327,10 +332,48 @@ def test_absolute_path_inside_capture_is_accepted(tmp_path):
     assert read_nerfstudio(tmp_path).image_paths[0] == "images/frame_00000.png"
 
 
-def test_colmap_images_without_files_is_mismatched_count(tmp_path):
-    write_colmap_model(tmp_path, text=True)
+def test_min_images_is_the_configured_minimum(tmp_path):
+    write_nerfstudio(tmp_path, ring(4))
+    (tmp_path / "images" / "frame_00002.png").unlink()
+    source = {"format": "nerfstudio", "path": str(tmp_path)}
+    message = r"transforms.json: only 3 of 4 frames have an image \(1 missing\), fewer than poses.min_images=4"
+    with pytest.raises(ValueError, match=message + ".*images/frame_00002.png"):
+        import_poses(source, None, {"min_images": 4}, tmp_path / "poses.zarr")
+    assert not (tmp_path / "poses.zarr").exists()
+    out = import_poses(source, None, {"min_images": 3}, tmp_path / "poses.zarr")
+    assert meta(open_artifact(out, stage="poses"))["n_images"] == 3
+
+
+def test_blender_frames_without_image_are_skipped(tmp_path, caplog):
+    poses = ring(5)
+    write_blender(tmp_path, poses, 0.6911, n_train=3)
+    for missing in ("train/r_1.png", "test/r_4.png"):
+        (tmp_path / missing).unlink()
+    capture = read_blender(tmp_path)
+    assert capture.image_paths == ["train/r_0.png", "train/r_2.png", "test/r_3.png"]
+    np.testing.assert_allclose(capture.camera_to_world, poses[[0, 2, 3]], atol=1e-12)
+    assert capture.extra["splits"] == ["train", "train", "test"]
+    assert capture.extra["n_frames_listed"] == 5
+    assert capture.extra["missing_images"] == ["train/r_1.png", "test/r_4.png"]
+    assert "skipped 2 of 5 frames" in caplog.text and "test/r_4.png" in caplog.text
+    for image in (*(tmp_path / "train").iterdir(), *(tmp_path / "test").iterdir()):
+        image.unlink()
+    with pytest.raises(FileNotFoundError, match=rf"{tmp_path}: none of the 5 frames of transforms_train.json, "
+                                                r"transforms_test.json has an image file"):
+        read_blender(tmp_path)
+
+
+def test_colmap_images_without_files_are_skipped(tmp_path, caplog):
+    poses, _, _ = write_colmap_model(tmp_path, text=True)
     (tmp_path / "images" / "im_2.jpg").unlink()
-    with pytest.raises(FileNotFoundError, match=r"sparse/0: mismatched counts: .* 4 posed images but 1 have no file.*im_2"):
+    capture = read_colmap(tmp_path)
+    assert capture.image_paths == ["images/im_0.jpg", "images/im_1.jpg", "images/im_3.jpg"]
+    np.testing.assert_allclose(capture.camera_to_world, poses[[0, 1, 3]], atol=1e-9)
+    assert capture.extra["n_frames_listed"] == 4 and capture.extra["missing_images"] == ["images/im_2.jpg"]
+    assert "sparse/0: skipped 1 of 4 frames" in caplog.text and "images/im_2.jpg" in caplog.text
+    for image in (tmp_path / "images").iterdir():
+        image.unlink()
+    with pytest.raises(FileNotFoundError, match=r"sparse/0: none of the 4 posed images has a file in .*images"):
         read_colmap(tmp_path)
 
 

@@ -11,7 +11,15 @@ from pathlib import Path
 import numpy as np
 
 from srfpipe import cameras
-from srfpipe.poses.capture import Capture, load_json, orthonormalize, pose_matrix, read_image_size, resolve_inside
+from srfpipe.poses.capture import (
+    Capture,
+    load_json,
+    orthonormalize,
+    pose_matrix,
+    read_image_size,
+    record_missing_images,
+    resolve_inside,
+)
 
 BLENDER_SPLITS = ("train", "val", "test")
 
@@ -23,7 +31,8 @@ def read_blender(path: str | Path) -> Capture:
     split_files = [f for f in split_files if f.exists()]
     if not split_files:
         raise FileNotFoundError(f"{root}: no transforms_train/val/test.json (is it a Blender NeRF capture?)")
-    image_paths, poses, intrinsics, sizes, splits = [], [], [], [], []
+    image_paths, poses, intrinsics, sizes, splits, missing = [], [], [], [], [], []
+    n_listed = 0
     for json_path in split_files:
         meta = load_json(json_path)
         frames = meta.get("frames")
@@ -32,6 +41,7 @@ def read_blender(path: str | Path) -> Capture:
         if "camera_angle_x" not in meta:
             raise ValueError(f"{json_path}: missing camera_angle_x")
         angle = float(meta["camera_angle_x"])
+        n_listed += len(frames)
         for index, frame in enumerate(frames):
             where = f"{json_path}: frames[{index}]"
             if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
@@ -40,6 +50,9 @@ def read_blender(path: str | Path) -> Capture:
             if not Path(file_path).suffix:
                 file_path += ".png"  # Blender NeRF lists frames without the extension
             relative = resolve_inside(root, file_path, where)
+            if not (root / relative).exists():
+                missing.append(relative)
+                continue
             width, height = read_image_size(root / relative, where)
             poses.append(pose_matrix(frame["transform_matrix"], f"{where} ({relative})"))
             focal = 0.5 * width / np.tan(0.5 * angle)
@@ -47,11 +60,15 @@ def read_blender(path: str | Path) -> Capture:
             intrinsics.append([focal, focal, width / 2.0, height / 2.0])
             sizes.append((width, height))
             splits.append(json_path.stem.removeprefix("transforms_"))
+    split_names = ", ".join(f.name for f in split_files)
+    extra = {"splits": splits, **record_missing_images(f"{root} ({split_names})", n_listed, missing)}
+    if not image_paths:
+        raise FileNotFoundError(f"{root}: none of the {n_listed} frames of {split_names} has an image file")
     n = len(image_paths)
     return Capture(
         root=root, image_paths=image_paths,
         camera_to_world=orthonormalize(cameras.opengl_to_opencv(np.stack(poses))),
         intrinsics=np.asarray(intrinsics), image_size=np.asarray(sizes, dtype=np.int32),
         distortion=np.zeros((n, 4)), source_format="blender", source_file=split_files[0],
-        extra={"splits": splits},
+        extra=extra,
     )

@@ -8,6 +8,7 @@ frame) it found the problem in.
 from __future__ import annotations
 
 import json
+import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,6 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from srfpipe import cameras
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -93,6 +96,19 @@ def read_image_size(path: Path, referenced_from: Path | str) -> tuple[int, int]:
     if image is None:
         raise ValueError(f"{path}: corrupt image (OpenCV could not decode it)")
     return int(image.shape[1]), int(image.shape[0])
+
+
+def record_missing_images(where: Path | str, n_listed: int, missing: list[str]) -> dict:
+    """Warn (naming `where`) about listed frames whose image file does not exist, and return the
+    `Capture.extra` keys that record them in poses.zarr: `n_frames_listed`, `missing_images`.
+
+    Real captures list frames whose images were later deleted (blurred, duplicates); they are
+    skipped rather than refused, and the stage decides whether enough are left (`poses.min_images`).
+    """
+    if missing:
+        log.warning("%s: skipped %d of %d frames whose image does not exist: %s", where, len(missing),
+                    n_listed, ", ".join(missing))
+    return {"n_frames_listed": n_listed, "missing_images": list(missing)}
 
 
 def pose_matrix(value, where: str) -> np.ndarray:

@@ -11,7 +11,14 @@ from pathlib import Path
 
 import numpy as np
 
-from srfpipe.poses.capture import Capture, check_image_file, check_pose, orthonormalize, resolve_inside
+from srfpipe.poses.capture import (
+    Capture,
+    check_image_file,
+    check_pose,
+    orthonormalize,
+    record_missing_images,
+    resolve_inside,
+)
 
 log = logging.getLogger(__name__)
 
@@ -82,13 +89,12 @@ def read_colmap(path: str | Path, images_dir: str | None = None, model_dir: str 
         intrinsics.append(k)
         sizes.append((int(camera.width), int(camera.height)))
         distortion.append(dist)
-    if missing:
-        raise FileNotFoundError(
-            f"{model}: mismatched counts: the model has {len(missing) + len(image_paths)} posed images but "
-            f"{len(missing)} have no file in {root / images_folder} (first: {', '.join(missing[:3])})"
-        )
-    if not image_paths:
+    n_posed = len(missing) + len(image_paths)
+    if not n_posed:
         raise ValueError(f"{model}: the model has no posed images")
+    extra = record_missing_images(model, n_posed, missing)
+    if not image_paths:
+        raise FileNotFoundError(f"{model}: none of the {n_posed} posed images has a file in {root / images_folder}")
     if unposed:
         log.warning("%s: skipped %d images without a pose (not registered by COLMAP)", model, unposed)
     points = np.array([p.xyz for p in reconstruction.points3D.values()], dtype=np.float64).reshape(-1, 3)
@@ -96,5 +102,5 @@ def read_colmap(path: str | Path, images_dir: str | None = None, model_dir: str 
         root=root, image_paths=image_paths, camera_to_world=orthonormalize(np.stack(poses)),
         intrinsics=np.asarray(intrinsics), image_size=np.asarray(sizes, dtype=np.int32),
         distortion=np.asarray(distortion), source_format="colmap", source_file=model,
-        points_world=points if len(points) else None, extra={"unposed_images_skipped": unposed},
+        points_world=points if len(points) else None, extra={**extra, "unposed_images_skipped": unposed},
     )

@@ -8,7 +8,6 @@ nerfstudio's COLMAP converter applied to the original world frame) is undone, so
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
 import numpy as np
@@ -21,10 +20,9 @@ from srfpipe.poses.capture import (
     orthonormalize,
     pose_matrix,
     read_image_size,
+    record_missing_images,
     resolve_inside,
 )
-
-log = logging.getLogger(__name__)
 
 NERFSTUDIO_INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2",
                              "camera_model", "camera_angle_x", "camera_angle_y")
@@ -91,7 +89,7 @@ def read_nerfstudio(path: str | Path, source_format: str = "nerfstudio") -> Capt
             raise ValueError(f"{where}: needs 'file_path' and 'transform_matrix'")
         relative = resolve_inside(root, frame["file_path"], where)
         if not (root / relative).exists():
-            missing.append(relative)  # real captures list frames that were later deleted
+            missing.append(relative)
             continue
         check_image_file(root / relative, where)
         where = f"{where} ({relative})"
@@ -102,10 +100,7 @@ def read_nerfstudio(path: str | Path, source_format: str = "nerfstudio") -> Capt
         sizes.append(size)
         distortion.append(dist)
 
-    extra = {"n_frames_listed": len(frames), "missing_images": missing}
-    if missing:
-        log.warning("%s: skipped %d of %d frames whose image does not exist: %s", json_path, len(missing),
-                    len(frames), ", ".join(missing))
+    extra = record_missing_images(json_path, len(frames), missing)
     if not image_paths:
         raise FileNotFoundError(f"{json_path}: none of the {len(frames)} frames has an image file")
     camera_to_world = cameras.opengl_to_opencv(np.stack(poses))

@@ -53,6 +53,17 @@ def load_capture(source: dict, capture_dir: str | Path | None = None) -> Capture
     return capture
 
 
+def check_enough_images(capture: Capture, min_images: int) -> None:
+    """Raise ValueError, naming the poses file, when fewer than `min_images` frames kept their image."""
+    if len(capture) >= min_images:
+        return
+    missing = capture.extra.get("missing_images") or []
+    listed = capture.extra.get("n_frames_listed", len(capture))
+    raise ValueError(
+        f"{capture.source_file}: only {len(capture)} of {listed} frames have an image ({len(missing)} missing), "
+        f"fewer than poses.min_images={min_images}" + (f"; missing: {', '.join(missing)}" if missing else ""))
+
+
 def import_poses(source: dict, capture_dir: str | Path | None, options: dict, out: str | Path,
                  threads: int = -1, progress: bool = True) -> Path:
     """Import, optionally perturb and refine, normalize, and write `poses.zarr` atomically.
@@ -72,12 +83,7 @@ def import_poses(source: dict, capture_dir: str | Path | None, options: dict, ou
     source = validate_scene({"source": source}, "source")["source"]
     options = validate_scene({"poses": dict(options)}, "poses options")["poses"]
     capture = load_capture(source, capture_dir)
-    if len(capture) < options["min_images"]:
-        missing = capture.extra.get("missing_images") or []
-        raise ValueError(
-            f"{capture.source_file}: only {len(capture)} of {capture.extra.get('n_frames_listed', len(capture))} "
-            f"frames have an image ({len(missing)} missing), fewer than poses.min_images={options['min_images']}"
-            + (f"; missing: {', '.join(missing)}" if missing else ""))
+    check_enough_images(capture, options["min_images"])
     log.info("imported %d images (%s) from %s", len(capture), capture.source_format, capture.source_file)
 
     poses = capture.camera_to_world
