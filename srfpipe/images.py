@@ -1,11 +1,12 @@
 """Undistort and downscale the posed images into `images.zarr`, one image in memory at a time.
 
-For every frame of `poses.zarr`: read the image (OpenCV, BGR -> RGB; alpha composited over white
-as nerfstudio does for Blender scenes; 16-bit scaled to 8-bit), undistort it when it has OpenCV
-distortion (the pinhole K is kept), resize it with INTER_AREA by the scene's `images.downscale`
-factor to (round(w / f), round(h / f)) and scale the intrinsics by the actual size ratio. The
-orchard's ground truth (`labels`, `depth`) goes through the same undistortion and resize with
-nearest-neighbour sampling, so class ids and depths stay exact values.
+For every frame of `poses.zarr`: read the image (OpenCV, turned upright by its EXIF orientation,
+BGR -> RGB; alpha composited over white as nerfstudio does for Blender scenes; 16-bit scaled to
+8-bit), undistort it when it has OpenCV distortion (the pinhole K is kept), resize it with
+INTER_AREA by the scene's `images.downscale` factor to (round(w / f), round(h / f)) and scale the
+intrinsics by the actual size ratio. The orchard's ground truth (`labels`, `depth`) goes through
+the same undistortion and resize with nearest-neighbour sampling, so class ids and depths stay
+exact values.
 
 Memory: one full-resolution image plus its downscaled copy; each image is one Zarr chunk.
 The artifact is written atomically (`srfpipe.artifacts.create_artifact`).
@@ -14,6 +15,7 @@ The artifact is written atomically (`srfpipe.artifacts.create_artifact`).
 from __future__ import annotations
 
 import logging
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -65,15 +67,64 @@ class Undistorter:
         return cv2.remap(image, map_x, map_y, interpolation, borderMode=border, borderValue=0)
 
 
-def read_rgb(path: Path) -> np.ndarray:
-    """An image file as (H, W, 3) uint8 RGB; error naming the file when OpenCV cannot decode it."""
+EXIF_ORIENTATION_TAG = 0x0112
+
+
+def exif_orientation(exif: bytes) -> int:
+    """The EXIF Orientation (1-8) in an EXIF block (TIFF header first); 1, upright, when the block
+    has no such tag or cannot be parsed, as OpenCV treats it."""
+    exif = exif.removeprefix(b"Exif\x00\x00")
+    if exif[:4] not in (b"II*\x00", b"MM\x00*"):
+        return 1
+    order = "<" if exif[:2] == b"II" else ">"
+    try:
+        (ifd,) = struct.unpack_from(order + "I", exif, 4)
+        (entries,) = struct.unpack_from(order + "H", exif, ifd)
+        for index in range(entries):
+            # IFD entry: tag, type, count, value; a SHORT value sits first in the 4-byte field
+            tag, kind, _, value = struct.unpack_from(order + "HHIH", exif, ifd + 2 + 12 * index)
+            if tag == EXIF_ORIENTATION_TAG:
+                return value if kind == 3 and 1 <= value <= 8 else 1
+    except struct.error:
+        return 1
+    return 1
+
+
+def apply_orientation(image: np.ndarray, orientation: int) -> np.ndarray:
+    """Pixels as stored, turned upright as EXIF `orientation` says (the same flips and transposes
+    as OpenCV applies when it decodes with orientation)."""
+    import cv2
+
+    if orientation in (5, 6, 7, 8):
+        image = cv2.transpose(image)
+    flip = {2: 1, 3: -1, 4: 0, 6: 1, 7: -1, 8: 0}.get(orientation)  # cv2.flip code: 1 x, 0 y, -1 both
+    return image if flip is None else cv2.flip(image, flip)
+
+
+def read_image(path: Path) -> np.ndarray:
+    """An image file decoded as stored (bit depth, grey and alpha kept) and turned upright by its
+    EXIF orientation: the one decoder for pixels (`read_rgb`) and for image sizes at pose import."""
     import cv2
 
     if not path.is_file():
         raise FileNotFoundError(f"{path}: image does not exist")
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
+    # IMREAD_UNCHANGED keeps alpha and 16 bits but ignores the EXIF orientation (OpenCV applies
+    # it only to converted reads, which drop alpha), so the tag is read and applied here.
+    image, kinds, blocks = cv2.imreadWithMetadata(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None or image.size == 0:
         raise ValueError(f"{path}: corrupt or unreadable image (OpenCV could not decode it)")
+    for kind, block in zip(kinds, blocks):
+        if kind == cv2.IMAGE_METADATA_EXIF:
+            image = apply_orientation(image, exif_orientation(np.asarray(block).tobytes()))
+    return image
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    """An image file as (H, W, 3) uint8 RGB, upright (EXIF orientation applied); error naming the
+    file when OpenCV cannot decode it."""
+    import cv2
+
+    image = read_image(path)
     if image.dtype == np.uint16:
         image = (image.astype(np.float32) / 257.0 + 0.5).astype(np.uint8)
     elif image.dtype != np.uint8:

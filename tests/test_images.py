@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import struct
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -10,8 +12,8 @@ import pytest
 
 from srfpipe import cameras
 from srfpipe.artifacts import meta, open_artifact
-from srfpipe.images import downscale_images, read_rgb
-from srfpipe.poses import import_poses
+from srfpipe.images import downscale_images, exif_orientation, read_rgb
+from srfpipe.poses import import_poses, load_capture
 from test_poses import edit_transforms, ring, write_nerfstudio
 
 
@@ -90,6 +92,115 @@ def test_rgba_and_grayscale_images(tmp_path):
     assert rgb[3, 0].tolist() == [255, 255, 255]  # composited over white
     cv2.imwrite(str(tmp_path / "g.png"), np.full((3, 5), 7, np.uint8))
     assert read_rgb(tmp_path / "g.png").shape == (3, 5, 3)
+
+
+def test_sixteen_bit_images_scale_to_eight_bit(tmp_path):
+    grey = np.array([[0, 257 * 100, 65535]], np.uint16)
+    cv2.imwrite(str(tmp_path / "g16.png"), grey)
+    assert read_rgb(tmp_path / "g16.png")[0, :, 0].tolist() == [0, 100, 255]
+    rgba = np.zeros((1, 2, 4), np.uint16)
+    rgba[..., 0] = 257 * 50  # blue in BGRA order
+    rgba[0, 0, 3] = 65535  # left opaque, right transparent
+    cv2.imwrite(str(tmp_path / "c16.png"), rgba)
+    assert read_rgb(tmp_path / "c16.png").tolist() == [[[0, 0, 50], [255, 255, 255]]]
+
+
+# ----------------------------------------------------------------------------- EXIF orientation
+
+
+def exif_segment(orientation: int, byte_order: str = "<") -> bytes:
+    """A JPEG APP1 segment holding EXIF with one tag, Orientation (a SHORT), in either byte order."""
+    header = (b"II*\x00" if byte_order == "<" else b"MM\x00*") + struct.pack(byte_order + "I", 8)
+    ifd = struct.pack(byte_order + "H", 1) + struct.pack(byte_order + "HHIHH", 0x0112, 3, 1, orientation, 0)
+    payload = b"Exif\x00\x00" + header + ifd + struct.pack(byte_order + "I", 0)
+    return b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload
+
+
+def write_oriented_jpeg(path: Path, bgr: np.ndarray, orientation: int, byte_order: str = "<") -> None:
+    """`bgr` stored as a JPEG whose EXIF says how to turn it upright (the segment right after SOI)."""
+    ok, encoded = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 100])
+    assert ok
+    data = encoded.tobytes()
+    path.write_bytes(data[:2] + exif_segment(orientation, byte_order) + data[2:])
+
+
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_exif_orientation_is_applied_as_opencv_does(tmp_path, orientation):
+    stored = np.random.default_rng(orientation).integers(0, 256, (20, 40, 3), dtype=np.uint8)
+    path = tmp_path / "o.jpg"
+    write_oriented_jpeg(path, stored, orientation)
+    upright = cv2.imread(str(path), cv2.IMREAD_COLOR)  # OpenCV applies the orientation for this flag
+    np.testing.assert_array_equal(read_rgb(path), upright[..., ::-1])
+    assert upright.shape[:2] == ((40, 20) if orientation >= 5 else (20, 40))
+
+
+@pytest.mark.parametrize("byte_order", ["<", ">"], ids=["intel", "motorola"])
+def test_exif_orientation_6_turns_the_image_90_degrees_clockwise(tmp_path, byte_order):
+    stored = np.zeros((24, 40, 3), np.uint8)
+    stored[:8, :8] = (0, 0, 255)  # a red block in the stored top-left corner (BGR)
+    write_oriented_jpeg(tmp_path / "o.jpg", stored, 6, byte_order)
+    rgb = read_rgb(tmp_path / "o.jpg")
+    assert rgb.shape == (40, 24, 3)  # portrait now
+    assert rgb[:8, -8:, 0].mean() > 200 and rgb[:8, :8, 0].mean() < 50  # top-left went to top-right
+    assert exif_orientation(exif_segment(6, byte_order)[4:]) == 6
+
+
+def test_exif_orientation_without_a_readable_tag_is_upright():
+    assert exif_orientation(b"") == 1
+    assert exif_orientation(b"II*\x00" + struct.pack("<I", 500)) == 1  # IFD offset past the end
+    assert exif_orientation(exif_segment(9)[4:]) == 1  # not an orientation
+
+
+def test_rotated_phone_capture_imports_and_downscales_upright(tmp_path):
+    """Camera sizes read at import and the pixels downscale decodes agree for EXIF-rotated JPEGs."""
+    capture = write_nerfstudio(tmp_path / "cap", ring(2), width=32, height=24)
+    stored = np.random.default_rng(0).integers(0, 256, (24, 32, 3), dtype=np.uint8)
+    for i in range(2):
+        write_oriented_jpeg(capture / "images" / f"frame_{i:05d}.jpg", stored, 6)
+
+    def portrait_frames(data):
+        for key in ("w", "h", "cx", "cy"):  # size from the files, principal point at their centre
+            del data[key]
+        for frame in data["frames"]:
+            frame["file_path"] = frame["file_path"].replace(".png", ".jpg")
+
+    edit_transforms(capture, portrait_frames)
+    assert load_capture({"format": "nerfstudio", "path": str(capture)}).image_size.tolist() == [[24, 32]] * 2
+    out = downscale_images(poses_zarr(tmp_path, capture), {"downscale": 2}, tmp_path / "images.zarr", progress=False)
+    images = open_artifact(out)["images"]
+    assert images.shape == (2, 16, 12, 3)
+    upright = cv2.imread(str(capture / "images" / "frame_00001.jpg"), cv2.IMREAD_COLOR)[..., ::-1]
+    np.testing.assert_array_equal(images[1], cv2.resize(upright, (12, 16), interpolation=cv2.INTER_AREA))
+
+
+def downscale_peak_bytes(tmp_path, n_frames: int) -> int:
+    """Peak numpy memory (tracemalloc sees every numpy and OpenCV-returned array) while 1920 x 1080
+    phone-sized JPEGs downscale 4x."""
+    import tracemalloc
+
+    capture = write_nerfstudio(tmp_path / f"cap{n_frames}", ring(n_frames), width=1920, height=1080,
+                               intrinsics=(1500.0, 1500.0, 960.0, 540.0), distortion=(0.01, 0.0, 0.0, 0.0))
+    frame = np.random.default_rng(0).integers(0, 256, (1080, 1920, 3), dtype=np.uint8)
+    for i in range(n_frames):
+        cv2.imwrite(str(capture / "images" / f"frame_{i:05d}.jpg"), frame)
+    edit_transforms(capture, lambda d: [f.update(file_path=f["file_path"].replace(".png", ".jpg")) for f in d["frames"]])
+    poses = poses_zarr(tmp_path / f"p{n_frames}", capture)
+    tracemalloc.start()
+    try:
+        downscale_images(poses, {"downscale": 4}, tmp_path / f"images{n_frames}.zarr", progress=False)
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+def test_full_size_phone_images_downscale_in_bounded_memory(tmp_path):
+    """Twelve 1920 x 1080 frames need no more memory than two: one full frame at a time (6 MB each;
+    holding them all would add 60 MB)."""
+    (tmp_path / "p2").mkdir(), (tmp_path / "p12").mkdir()
+    few, many = downscale_peak_bytes(tmp_path, 2), downscale_peak_bytes(tmp_path, 12)
+    frame_bytes = 1920 * 1080 * 3
+    assert many < few + frame_bytes, (few / 1e6, many / 1e6)
+    assert many < 8 * frame_bytes  # a handful of full-size buffers (decode, undistort maps, remap)
 
 
 def test_failure_mid_way_leaves_no_artifact(tmp_path):

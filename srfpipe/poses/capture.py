@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from srfpipe import cameras
+from srfpipe.images import read_image
 
 log = logging.getLogger(__name__)
 
@@ -88,14 +89,15 @@ def check_image_file(path: Path, referenced_from: Path | str) -> None:
 
 
 def read_image_size(path: Path, referenced_from: Path | str) -> tuple[int, int]:
-    """(width, height) of an image file, decoding it with OpenCV (Blender, or nerfstudio without w/h)."""
-    import cv2
+    """(width, height) of an image file upright (EXIF orientation applied), for Blender captures
+    and nerfstudio frames without w/h.
 
+    Decoded by the same function as the downscale stage's pixels (`srfpipe.images.read_image`), so
+    the camera's size is the size of the pixels it is applied to.
+    """
     check_image_file(path, referenced_from)
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise ValueError(f"{path}: corrupt image (OpenCV could not decode it)")
-    return int(image.shape[1]), int(image.shape[0])
+    height, width = read_image(path).shape[:2]
+    return int(width), int(height)
 
 
 def record_missing_images(where: Path | str, n_listed: int, missing: list[str]) -> dict:
