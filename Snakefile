@@ -1,5 +1,5 @@
 # srfpipe: posed RGB captures -> Semantic Radiance Field simulators.
-# Build one scene:   snakemake --cores 2 results/orchard/occupancy.zarr
+# Build one scene:   snakemake --cores 2 results/orchard/sim
 # Build every scene: snakemake --cores 2
 from snakemake.utils import min_version
 
@@ -15,6 +15,7 @@ include: "workflow/rules/images.smk"
 include: "workflow/rules/segment.smk"
 include: "workflow/rules/train.smk"
 include: "workflow/rules/occupancy.smk"
+include: "workflow/rules/sim.smk"
 
 
 rule all:

@@ -22,6 +22,8 @@ STAGES = [
     ("train", "srfpipe.srf.trainer", "train the semantic radiance field -> srf.zarr"),
     ("evaluate", "srfpipe.evaluate", "held-out PSNR/SSIM/IoU and renders -> eval/"),
     ("distill", "srfpipe.occupancy", "distill the field into the occupancy cache -> occupancy.zarr"),
+    ("package", "srfpipe.sim.package", "package the scene for the simulator (manifest, fruit targets, meshes, MJCF) -> sim/"),
+    ("sim", "srfpipe.sim.rollout", "run apple-reaching episodes in a package and write a GIF (wrist RGB | semantic | third person)"),
 ]
 
 

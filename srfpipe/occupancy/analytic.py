@@ -90,6 +90,24 @@ class AnalyticField:
         probs[np.flatnonzero(hit), point_class[hit]] = 1.0
         return probs
 
+    # Colours, so a simulator can render the stand-in scene (srfpipe.sim bakes any field with these)
+    class_colours: dict = field(default_factory=lambda: {"apple": (0.8, 0.1, 0.1), "branch": (0.45, 0.3, 0.15),
+                                                         "leaf": (0.2, 0.6, 0.2)})
+    sky: tuple = (0.6, 0.75, 0.95)
+
+    def radiance(self, points_world, directions_world=None) -> np.ndarray:
+        """Colour (M, 3) of the primitive containing each point (grey for no class, black outside)."""
+        owner = self._owner(points_world)
+        table = np.array([self.class_colours.get(self.classes[p.class_index], (0.5, 0.5, 0.5))
+                          if p.class_index >= 0 else (0.5, 0.5, 0.5) for p in self.primitives] + [(0.0, 0.0, 0.0)],
+                         dtype=np.float32).reshape(-1, 3)
+        return table[owner]
+
+    def background(self, directions_world) -> tuple[np.ndarray, np.ndarray]:
+        """The sky (a constant colour) and background class probabilities (0)."""
+        n = len(np.asarray(directions_world).reshape(-1, 3))
+        return np.tile(np.asarray(self.sky, np.float32), (n, 1)), np.zeros(len(self.classes), np.float32)
+
     def signed_distance(self, points_world, class_name: str | None = None) -> np.ndarray:
         """Exact signed distance to the union of primitives (of one class), for checking caches."""
         points = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)

@@ -4,6 +4,7 @@
     out = srf.render(camera_to_world, intrinsics, width, height)       # Render(P)
     p = srf.semantic(points_world)                                     # Semantic(x): (M, C) in [0, 1]
     sigma = srf.density(points_world)                                  # Occupancy(x): (M,) per world unit
+    rgb = srf.radiance(points_world, directions_world)                 # c(x, d): (M, 3) emitted colour
 
 Poses use the project convention (OpenCV camera frame, camera_to_world, see srfpipe.cameras).
 Work is batched internally; NaN or infinite inputs raise ValueError.
@@ -118,3 +119,43 @@ class SemanticRadianceField:
         inside = np.all((points >= self.bounds_world[0]) & (points <= self.bounds_world[1]), axis=1)
         out[~inside] = 0.0
         return out
+
+    def _directions_to_scene(self, directions_world) -> "torch.Tensor":
+        import torch
+
+        d = np.asarray(directions_world, dtype=np.float64)
+        if d.ndim != 2 or d.shape[1] != 3 or not np.all(np.isfinite(d)):
+            raise ValueError(f"directions_world must be finite with shape (M, 3), got {d.shape}")
+        d = d @ self.scene_from_world[:3, :3].T
+        norm = np.linalg.norm(d, axis=1, keepdims=True)
+        if np.any(norm == 0):
+            raise ValueError("directions must be non-zero")
+        return torch.as_tensor(d / norm, dtype=torch.float32, device=self.device)
+
+    def radiance(self, points_world: np.ndarray, directions_world: np.ndarray) -> np.ndarray:
+        """c(x, d): the colour (M, 3) in [0, 1] emitted at world points toward the viewer looking
+        along `directions_world` (with the mean appearance embedding, like a novel view)."""
+        import torch
+
+        points = _points(points_world)
+        directions = self._directions_to_scene(directions_world)
+        if len(directions) != len(points):
+            raise ValueError(f"{len(points)} points but {len(directions)} directions")
+        out = np.empty((points.shape[0], 3), dtype=np.float32)
+        with torch.no_grad():
+            for start in range(0, points.shape[0], self.batch_size):
+                x = self._to_scene(points[start:start + self.batch_size])
+                h = self.model.field.latent(x)
+                out[start:start + len(x)] = self.model.field.color(h, directions[start:start + len(x)]).float().cpu().numpy()
+        return out
+
+    def background(self, directions_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """What a ray leaving the field sees: colour (M, 3) along world directions (sky) and the
+        per-class background probabilities (C,)."""
+        import torch
+
+        directions = self._directions_to_scene(directions_world)
+        with torch.no_grad():
+            rgb = self.model.field.background(directions).float().cpu().numpy()
+            prob = self.model.field.background_logits.float().sigmoid().cpu().numpy()
+        return rgb, prob

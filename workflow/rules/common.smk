@@ -43,6 +43,7 @@ ARTIFACTS = {
     "srf": "srf.zarr",
     "eval": "eval",
     "occupancy": "occupancy.zarr",
+    "sim": "sim",
 }
 
 
