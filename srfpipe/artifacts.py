@@ -18,6 +18,7 @@ from __future__ import annotations
 import datetime as _dt
 import os
 import shutil
+import socket
 import sys
 import uuid
 from contextlib import contextmanager
@@ -89,22 +90,59 @@ def provenance(stage: str, config: dict | None, inputs: list[str | Path] | None,
     )
 
 
+def _owner_tag() -> str:
+    """host-pid: which process a hidden partial/old sibling belongs to."""
+    return f"{socket.gethostname().replace('-', '_')}-{os.getpid()}"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_siblings(path: str | Path) -> list[Path]:
+    """Delete hidden `.NAME.partial-*` / `.NAME.old-*` siblings of `path` left by a process of
+    this host that no longer runs (killed with SIGKILL, out of memory, pre-empted): nothing reads
+    them, and they would fill the disk. Another host's, or a live process's, are left alone."""
+    path = Path(path)
+    removed = []
+    host = socket.gethostname().replace("-", "_")
+    if not path.parent.is_dir():
+        return removed
+    for sibling in path.parent.glob(f".{path.name}.*-*"):
+        kind, _, tag = sibling.name[len(path.name) + 2:].partition("-")
+        parts = tag.split("-")
+        if kind not in ("partial", "old") or len(parts) != 3 or parts[0] != host or not parts[1].isdigit():
+            continue
+        if not _pid_alive(int(parts[1])):
+            shutil.rmtree(sibling, ignore_errors=True)
+            removed.append(sibling)
+    return removed
+
+
 @contextmanager
 def atomic_directory(path: str | Path) -> Iterator[Path]:
     """Yield a hidden temporary sibling of `path` to fill; it becomes `path` only on success.
 
     An older `path` is moved aside first and deleted after the rename, so a failed re-run leaves
-    the previous output intact and an interrupted one leaves nothing that looks complete.
+    the previous output intact and an interrupted one leaves nothing that looks complete. The
+    hidden names carry host and pid, so a later run removes those of a killed process.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.partial-{uuid.uuid4().hex[:8]}")
+    remove_stale_siblings(path)
+    tmp = path.with_name(f".{path.name}.partial-{_owner_tag()}-{uuid.uuid4().hex[:8]}")
     tmp.mkdir()
     try:
         yield tmp
         old = None
         if path.exists():
-            old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex[:8]}")
+            old = path.with_name(f".{path.name}.old-{_owner_tag()}-{uuid.uuid4().hex[:8]}")
             os.replace(path, old)
         os.replace(tmp, path)
         if old is not None:
@@ -164,8 +202,10 @@ def open_artifact(path: str | Path, stage: str | tuple[str, ...] | None = None) 
     except Exception as exc:  # zarr raises several types for a folder that is not a group
         raise ArtifactError(f"{path}: not a srfpipe Zarr artifact ({exc})") from exc
     if meta.get("schema_version") != SCHEMA_VERSION:
+        written_by = (meta.get("versions") or {}).get("srfpipe", "an unknown srfpipe")
         raise ArtifactError(
-            f"{path}: schema version {meta.get('schema_version')!r}, this srfpipe reads {SCHEMA_VERSION}"
+            f"{path}: incompatible schema version: found {meta.get('schema_version')!r} (written by srfpipe "
+            f"{written_by}), expected {SCHEMA_VERSION}; rebuild it with this srfpipe (delete it and re-run)"
         )
     if not meta.get("complete", False):
         raise ArtifactError(f"{path}: artifact is incomplete (its stage did not finish)")

@@ -68,8 +68,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         result = args._run(args)
-    except (ValueError, FileNotFoundError, RuntimeError) as exc:
-        # Bad input: one clear line naming the file and the problem, no traceback noise.
+    except (ValueError, OSError, RuntimeError) as exc:
+        # Bad input, a full disk, a read-only folder: one clear line naming the file and the
+        # problem, no traceback noise (the artifact's partial directory is already removed).
         logging.getLogger("srfpipe").debug("traceback", exc_info=True)
         print(f"srfpipe {args.stage}: error: {exc}", file=sys.stderr)
         return 1

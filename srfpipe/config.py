@@ -6,6 +6,7 @@ Errors name the scene file and the key (`config/scenes/x.yaml: poses.refine: 'ye
 from __future__ import annotations
 
 import copy
+import difflib
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
@@ -60,9 +61,50 @@ def validate_scene(scene: dict, source: str = "<scene>") -> dict:
         lines = []
         for error in errors:
             key = ".".join(str(p) for p in error.path) or "(top level)"
-            lines.append(f"{source}: {key}: {error.message}")
+            lines.append(f"{source}: {key}: {error.message}{_suggestion(error)}")
         raise ConfigError("\n".join(lines))
+    problems = contradictions(scene)
+    if problems:
+        raise ConfigError("\n".join(f"{source}: {problem}" for problem in problems))
     return scene
+
+
+def _suggestion(error) -> str:
+    """'; did you mean ...?' for an unknown key close to a known one (a typo)."""
+    if error.validator != "additionalProperties" or not isinstance(error.instance, dict):
+        return ""
+    known = list(error.schema.get("properties", {}))
+    hints = []
+    for key in error.instance:
+        if key not in known:
+            close = difflib.get_close_matches(str(key), known, n=1, cutoff=0.6)
+            if close:
+                hints.append(f"{key!r} -> {close[0]!r}")
+    return f"; did you mean {', '.join(hints)}?" if hints else ""
+
+
+def contradictions(scene: dict) -> list[str]:
+    """Settings that are each valid but contradict each other, as 'key: problem' lines."""
+    problems = []
+    bounds = scene.get("poses", {}).get("bounds")
+    if bounds is not None and not all(lo < hi for lo, hi in zip(bounds[0], bounds[1])):
+        problems.append(f"poses.bounds: the minimum {bounds[0]} must be below the maximum {bounds[1]} on every axis")
+    segmentation = scene.get("segmentation", {})
+    prompts = segmentation.get("prompts")
+    if prompts is not None:
+        unknown = sorted(set(segmentation.get("thresholds") or {}) - set(prompts))
+        if unknown:
+            problems.append(f"segmentation.thresholds: {unknown} are not among segmentation.prompts {prompts}")
+    if segmentation.get("backend") == "import" and prompts and not (segmentation.get("import") or {}).get("path"):
+        problems.append("segmentation.backend is import but segmentation.import.path is not set")
+    occupancy = scene.get("occupancy", {})
+    both = sorted(set(occupancy.get("avoid") or []) & set(occupancy.get("reach") or []))
+    if both:
+        problems.append(f"occupancy: {both} are both to avoid and to reach")
+    train = scene.get("train", {})
+    if "near" in train and "far" in train and train["near"] >= train["far"]:
+        problems.append(f"train.near {train['near']} must be below train.far {train['far']}")
+    return problems
 
 
 def load_scene(path: str | Path) -> dict:

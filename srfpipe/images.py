@@ -101,6 +101,19 @@ def apply_orientation(image: np.ndarray, orientation: int) -> np.ndarray:
     return image if flip is None else cv2.flip(image, flip)
 
 
+def check_jpeg_complete(path: Path) -> None:
+    """Raise ValueError when a JPEG file ends inside its last scan: libjpeg decodes a truncated
+    file with only a warning (the missing rows grey), so the end-of-image marker is checked here.
+    Inside entropy-coded data 0xFF is always followed by 0x00 or a restart marker, so the last
+    start-of-scan marker (FF DA) must be followed by an end-of-image marker (FF D9)."""
+    with open(path, "rb") as handle:
+        if handle.read(2) != b"\xff\xd8":
+            return
+        data = handle.read()
+    if data.rfind(b"\xff\xd9") < data.rfind(b"\xff\xda"):
+        raise ValueError(f"{path}: truncated JPEG (the file ends inside its image data, no end-of-image marker)")
+
+
 def read_image(path: Path) -> np.ndarray:
     """An image file decoded as stored (bit depth, grey and alpha kept) and turned upright by its
     EXIF orientation: the one decoder for pixels (`read_rgb`) and for image sizes at pose import."""
@@ -113,6 +126,7 @@ def read_image(path: Path) -> np.ndarray:
     image, kinds, blocks = cv2.imreadWithMetadata(str(path), cv2.IMREAD_UNCHANGED)
     if image is None or image.size == 0:
         raise ValueError(f"{path}: corrupt or unreadable image (OpenCV could not decode it)")
+    check_jpeg_complete(path)
     for kind, block in zip(kinds, blocks):
         if kind == cv2.IMAGE_METADATA_EXIF:
             image = apply_orientation(image, exif_orientation(np.asarray(block).tobytes()))

@@ -27,6 +27,7 @@ def test_interrupted_stage_leaves_nothing(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.bad_input
 def test_wrong_stage_and_missing_artifact_are_clear(tmp_path):
     path = tmp_path / "a.zarr"
     with create_artifact(path, "poses"):
@@ -40,6 +41,7 @@ def test_wrong_stage_and_missing_artifact_are_clear(tmp_path):
         open_artifact(tmp_path / "junk.zarr")
 
 
+@pytest.mark.bad_input
 def test_non_finite_attributes_are_refused(tmp_path):
     with pytest.raises(ValueError, match="non-finite"):
         with create_artifact(tmp_path / "a.zarr", "demo", config={"x": float("nan")}):

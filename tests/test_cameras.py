@@ -53,6 +53,7 @@ def test_normalization_round_trip_and_box():
     assert cameras.check_rotation(moved[:3, :3]) is None
 
 
+@pytest.mark.bad_input
 def test_bad_bounds_and_rotations_are_named():
     with pytest.raises(ValueError, match="empty"):
         cameras.scene_from_world_transform([0, 0, 0], [1, 0, 1])

@@ -22,6 +22,7 @@ def test_builtin_orchard_scene_is_valid():
     assert scene["images"]["downscale"] == 4
 
 
+@pytest.mark.bad_input
 def test_error_names_file_and_key(tmp_path):
     path = tmp_path / "bad.yaml"
     path.write_text("poses:\n  refine: yes_please\n")
@@ -30,6 +31,7 @@ def test_error_names_file_and_key(tmp_path):
     assert str(path) in str(err.value) and "poses.refine" in str(err.value)
 
 
+@pytest.mark.bad_input
 def test_unknown_key_and_format_are_rejected(tmp_path):
     path = tmp_path / "typo.yaml"
     path.write_text("source: {format: ply, path: x}\nimagez: {downscale: 2}\n")
@@ -39,11 +41,13 @@ def test_unknown_key_and_format_are_rejected(tmp_path):
     assert "source.format" in message and "imagez" in message
 
 
+@pytest.mark.bad_input
 def test_real_capture_requires_a_path():
     with pytest.raises(ConfigError, match="path"):
         validate_scene({"source": {"format": "nerfstudio"}}, "s.yaml")
 
 
+@pytest.mark.bad_input
 def test_missing_scene_file(tmp_path):
     with pytest.raises(ConfigError, match="does not exist"):
         load_scene(tmp_path / "nope.yaml")

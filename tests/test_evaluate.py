@@ -78,6 +78,7 @@ def test_classes_give_iou_and_three_panel_renders(scene):
     assert figure.shape == (2 * HEIGHT, 3 * WIDTH, 3)
 
 
+@pytest.mark.bad_input
 def test_classes_that_differ_from_the_fields_name_both(scene):
     folder, images, labels = scene
     data = load_posed_images(images, labels)

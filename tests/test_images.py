@@ -82,6 +82,7 @@ def test_undistortion_moves_points_to_pinhole_projection(tmp_path):
         np.testing.assert_allclose(centroid, [x, y], atol=0.35)
 
 
+@pytest.mark.bad_input
 def test_rgba_and_grayscale_images(tmp_path):
     rgba = np.zeros((4, 4, 4), np.uint8)
     rgba[..., 2] = 200  # red in BGR order
@@ -94,6 +95,7 @@ def test_rgba_and_grayscale_images(tmp_path):
     assert read_rgb(tmp_path / "g.png").shape == (3, 5, 3)
 
 
+@pytest.mark.bad_input
 def test_sixteen_bit_images_scale_to_eight_bit(tmp_path):
     grey = np.array([[0, 257 * 100, 65535]], np.uint16)
     cv2.imwrite(str(tmp_path / "g16.png"), grey)
@@ -124,6 +126,7 @@ def write_oriented_jpeg(path: Path, bgr: np.ndarray, orientation: int, byte_orde
     path.write_bytes(data[:2] + exif_segment(orientation, byte_order) + data[2:])
 
 
+@pytest.mark.bad_input
 @pytest.mark.parametrize("orientation", range(1, 9))
 def test_exif_orientation_is_applied_as_opencv_does(tmp_path, orientation):
     stored = np.random.default_rng(orientation).integers(0, 256, (20, 40, 3), dtype=np.uint8)
@@ -134,6 +137,7 @@ def test_exif_orientation_is_applied_as_opencv_does(tmp_path, orientation):
     assert upright.shape[:2] == ((40, 20) if orientation >= 5 else (20, 40))
 
 
+@pytest.mark.bad_input
 @pytest.mark.parametrize("byte_order", ["<", ">"], ids=["intel", "motorola"])
 def test_exif_orientation_6_turns_the_image_90_degrees_clockwise(tmp_path, byte_order):
     stored = np.zeros((24, 40, 3), np.uint8)
@@ -145,6 +149,7 @@ def test_exif_orientation_6_turns_the_image_90_degrees_clockwise(tmp_path, byte_
     assert exif_orientation(exif_segment(6, byte_order)[4:]) == 6
 
 
+@pytest.mark.bad_input
 def test_exif_orientation_without_a_readable_tag_is_upright():
     assert exif_orientation(b"") == 1
     assert exif_orientation(b"II*\x00" + struct.pack("<I", 500)) == 1  # IFD offset past the end
@@ -223,6 +228,7 @@ def test_failure_keeps_previous_complete_artifact_untouched(tmp_path):
     assert meta(open_artifact(out))["downscale"] == 2.0
 
 
+@pytest.mark.bad_input
 def test_mixed_image_sizes_name_the_file(tmp_path):
     capture = write_nerfstudio(tmp_path / "cap", ring(3), width=64, height=48)
     write_nerfstudio(tmp_path / "other", ring(1), width=80, height=48)
@@ -232,6 +238,7 @@ def test_mixed_image_sizes_name_the_file(tmp_path):
         downscale_images(poses_zarr(tmp_path, capture), {"downscale": 4}, tmp_path / "images.zarr", progress=False)
 
 
+@pytest.mark.bad_input
 def test_image_not_matching_its_camera_names_file(tmp_path):
     capture = write_nerfstudio(tmp_path / "cap", ring(2), width=64, height=48)
     cv2.imwrite(str(capture / "images" / "frame_00001.png"), np.zeros((40, 64, 3), np.uint8))

@@ -170,6 +170,7 @@ def test_octree_raycast_hits_the_sphere_at_the_analytic_distance(sphere_cache):
     np.testing.assert_allclose(t_long, t[hits])
 
 
+@pytest.mark.bad_input
 def test_nan_points_raise_a_clear_error(sphere_cache):
     _, cache = sphere_cache
     points = np.zeros((10, 3))
@@ -235,6 +236,7 @@ def test_pyramid_and_octree_match_the_voxels(sphere_cache):
     assert size == VOXEL and np.all(np.linalg.norm(centres - CENTRE, axis=1) < RADIUS + VOXEL)
 
 
+@pytest.mark.bad_input
 def test_cli_errors_name_the_problem(tmp_path):
     missing = tmp_path / "nope" / "srf.zarr"
     result = subprocess.run([sys.executable, "-m", "srfpipe.cli", "distill", "--srf", str(missing),

@@ -155,6 +155,7 @@ def test_nerfstudio_applied_transform_is_undone(tmp_path):
     assert capture.extra["applied_transform_undone"] == applied[:3].tolist()
 
 
+@pytest.mark.bad_input
 def test_nerfstudio_unsupported_camera_model_names_file(tmp_path):
     write_nerfstudio(tmp_path, ring(2))
     path = edit_transforms(tmp_path, lambda d: d.update(camera_model="OPENCV_FISHEYE"))
@@ -277,6 +278,7 @@ def test_bounds_from_frusta_ring_gives_box_around_target():
 # ----------------------------------------------------------------------------- bad inputs
 
 
+@pytest.mark.bad_input
 def test_missing_images_are_skipped_listed_and_recorded(tmp_path, caplog):
     write_nerfstudio(tmp_path / "cap", ring(6))
     for i in (1, 4):
@@ -288,6 +290,7 @@ def test_missing_images_are_skipped_listed_and_recorded(tmp_path, caplog):
     assert "skipped 2 of 6 frames" in caplog.text and "frame_00004.png" in caplog.text
 
 
+@pytest.mark.bad_input
 def test_too_few_images_left_is_an_error_naming_the_file(tmp_path):
     write_nerfstudio(tmp_path, ring(4))
     for i in (0, 1, 2):
@@ -308,6 +311,7 @@ def test_too_few_images_left_is_an_error_naming_the_file(tmp_path):
      (np.diag([-1.0, 1.0, 1.0, 1.0]), "reflection")],
     ids=["nan", "scaled", "reflection"],
 )
+@pytest.mark.bad_input
 def test_bad_pose_names_file_and_frame(tmp_path, bad, message):
     write_nerfstudio(tmp_path, ring(3))
     # Python's json writes NaN as a bare NaN literal, as many capture tools do
@@ -316,6 +320,7 @@ def test_bad_pose_names_file_and_frame(tmp_path, bad, message):
         read_nerfstudio(tmp_path)
 
 
+@pytest.mark.bad_input
 @pytest.mark.parametrize("file_path", ["../outside.png", "images/../../outside.png", "/etc/hostname"])
 def test_file_path_escaping_dataset_folder(tmp_path, file_path):
     capture = tmp_path / "capture"
@@ -377,6 +382,7 @@ def test_colmap_images_without_files_are_skipped(tmp_path, caplog):
         read_colmap(tmp_path)
 
 
+@pytest.mark.bad_input
 def test_ground_truth_count_mismatch(tmp_path):
     write_nerfstudio(tmp_path, ring(3))
     labels = tmp_path / "ground_truth" / "labels"
@@ -387,6 +393,7 @@ def test_ground_truth_count_mismatch(tmp_path):
         load_capture({"format": "orchard"}, tmp_path)
 
 
+@pytest.mark.bad_input
 def test_corrupt_image_names_file(tmp_path):
     write_nerfstudio(tmp_path, ring(3))
     bad = tmp_path / "images" / "frame_00001.png"
@@ -395,6 +402,7 @@ def test_corrupt_image_names_file(tmp_path):
         load_capture({"format": "nerfstudio", "path": str(tmp_path)})
 
 
+@pytest.mark.bad_input
 def test_unknown_format_names_capture(tmp_path):
     with pytest.raises(ValueError, match=rf"{tmp_path}: unknown capture format 'polycam'"):
         import_poses({"format": "polycam"}, tmp_path, {}, tmp_path / "poses.zarr")
@@ -403,6 +411,7 @@ def test_unknown_format_names_capture(tmp_path):
     assert not (tmp_path / "poses.zarr").exists()
 
 
+@pytest.mark.bad_input
 def test_cli_reports_bad_input_in_one_line(tmp_path, capsys):
     from srfpipe.cli import main
 

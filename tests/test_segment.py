@@ -176,6 +176,7 @@ def test_class_channel_model_selects_the_prompt_channel(tmp_path, colour_class_m
     assert np.array_equal(blue >= 0.5, red < 0.5)
 
 
+@pytest.mark.bad_input
 def test_unknown_prompt_names_the_model_and_its_classes(tmp_path, colour_class_model):
     images = write_images(tmp_path / "images.zarr", red_blue_images(n=1))
     opts = options(model=str(colour_class_model))
@@ -188,6 +189,7 @@ def test_unknown_prompt_names_the_model_and_its_classes(tmp_path, colour_class_m
     assert masks[0][:, :20].min() > 0.99
 
 
+@pytest.mark.bad_input
 def test_model_with_wrong_inputs_lists_what_was_expected(tmp_path):
     import torch
 
@@ -206,6 +208,7 @@ def test_model_with_wrong_inputs_lists_what_was_expected(tmp_path):
                        tmp_path / "a.zarr", progress=False)
 
 
+@pytest.mark.bad_input
 def test_text_model_without_token_input_is_rejected(tmp_path, colour_class_model):
     images = write_images(tmp_path / "images.zarr", red_blue_images(n=1))
     opts = options(model=str(colour_class_model), kind="text", tokenizer="unused.json")
@@ -260,6 +263,7 @@ def test_import_label_images_with_value_table(tmp_path):
         segment_images(images, "branch", prompt_options(opts, "branch"), tmp_path / "b.zarr", progress=False)
 
 
+@pytest.mark.bad_input
 def test_import_missing_or_wrongly_sized_mask_names_the_file(tmp_path):
     images = write_images(tmp_path / "images.zarr", red_blue_images(n=2, width=40, height=30), downscale=4)
     folder = tmp_path / "masks"
@@ -359,6 +363,7 @@ def test_no_prompts_give_labels_with_zero_classes(tmp_path):
     assert result.returncode != 0 and "--images" in result.stderr
 
 
+@pytest.mark.bad_input
 def test_prompts_that_all_come_out_empty_are_still_an_error(tmp_path):
     images = blank_images(tmp_path / "images.zarr")
     masks = [write_mask(tmp_path / f"{p}.zarr", p, np.zeros((2, 4, 5), np.float32)) for p in ("apple", "leaf")]
@@ -370,6 +375,7 @@ def test_prompts_that_all_come_out_empty_are_still_an_error(tmp_path):
     assert meta(open_artifact(kept))["classes"] == ["apple", "leaf"]
 
 
+@pytest.mark.bad_input
 def test_masks_must_match_the_frames_of_images_zarr(tmp_path):
     images = blank_images(tmp_path / "images.zarr")
     good = write_mask(tmp_path / "apple.zarr", "apple", np.full((2, 4, 5), 0.9, np.float32))
@@ -472,6 +478,7 @@ def test_scene_without_prompts_builds_labels_without_segment_jobs(workflow):
     assert labels["label"].shape == (3, 24, 32) and not np.asarray(labels["label"][:]).any()
 
 
+@pytest.mark.bad_input
 def test_cli_reports_an_unknown_prompt_in_one_line(tmp_path):
     images = write_images(tmp_path / "images.zarr", red_blue_images(n=1))
     result = subprocess.run([sys.executable, "-m", "srfpipe.cli", "segment", "--images", str(images),

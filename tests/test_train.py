@@ -151,6 +151,7 @@ def test_evaluate_writes_metrics_and_renders(scene, trained, tmp_path):
         evaluate(images, labels, trained, tmp_path / "eval2", {"holdout_every": 3}, device="cpu")
 
 
+@pytest.mark.bad_input
 def test_bad_inputs_name_the_file(scene, tmp_path):
     _, images, _ = scene
     from srfpipe.artifacts import ArtifactError

@@ -6,6 +6,8 @@ batched: one parallel pass over the points (numba). Semantics of space:
 * Points outside the grid box are **free space**: occupancy 0, density 0, probability 0, no class;
   `distance` continues beyond the box as d(q) + |p - q| with q the nearest point of the box.
 * A NaN coordinate raises ValueError (a simulator that produced NaN has a bug to surface).
+* Huge and infinite coordinates are far free space: `distance` is d(q) + |p - q| (inf for an
+  infinite one) and its gradient the unit direction from the box, computed without overflow.
 * Nearest-voxel queries (`occupancy`, `class_occupancy`) read the voxel containing the point;
   `density`, `semantic` and `distance` interpolate trilinearly between voxel centres.
 """
@@ -179,7 +181,33 @@ class OccupancyCache:
         grad = np.empty((len(pts), 3), dtype=np.float64)
         bad = kernels.distance_gradient(pts, self._distance[class_name], self._origin, self.grid.voxel_size, d, grad)
         _check_nan(bad, len(pts))
+        far = ~np.isfinite(grad).all(axis=1) | ~np.isfinite(d)
+        if far.any():
+            self._far_distance(class_name, pts[far], d, grad, far)
         return d.reshape(batch), grad.reshape(batch + (3,))
+
+    def _far_distance(self, class_name: str, pts: np.ndarray, d: np.ndarray, grad: np.ndarray, rows: np.ndarray) -> None:
+        """Distance and gradient of points so far out (huge or infinite coordinates) that the
+        kernel's |p - q| overflowed: d(q) + |p - q| and its gradient,
+        with q the nearest point of the box, computed scaled (infinite axes dominate)."""
+        lo, hi = self.bounds_world
+        pts = pts.astype(np.float64)
+        inside = np.clip(pts, lo, hi)
+        with np.errstate(invalid="ignore", over="ignore"):
+            diff = pts - inside
+            infinite = np.isinf(diff)
+            diff = np.where(infinite.any(axis=1, keepdims=True), np.where(infinite, np.sign(diff), 0.0), diff)
+            scale = np.max(np.abs(diff), axis=1, keepdims=True)
+            unit = diff / scale
+            norm = np.linalg.norm(unit, axis=1, keepdims=True)
+        edge_d = np.empty(len(pts), dtype=np.float64)
+        edge_g = np.empty((len(pts), 3), dtype=np.float64)
+        kernels.distance_gradient(np.ascontiguousarray(inside), self._distance[class_name], self._origin,
+                                  self.grid.voxel_size, edge_d, edge_g)
+        with np.errstate(over="ignore"):
+            d[rows] = edge_d + np.where(infinite.any(axis=1), np.inf, (scale * norm)[:, 0])
+        # as the kernel: the normal from the box plus the gradient at q along the unclamped axes
+        grad[rows] = unit / norm + np.where((pts < lo) | (pts > hi), 0.0, edge_g)
 
     def raycast(self, origins, directions, max_t=np.inf) -> tuple[np.ndarray, np.ndarray]:
         """First occupied voxel along each ray, through the octree.

@@ -13,7 +13,9 @@ import numpy as np
 from srfpipe import cameras
 from srfpipe.poses.capture import (
     Capture,
+    check_unique,
     load_json,
+    number,
     orthonormalize,
     pose_matrix,
     read_image_size,
@@ -24,8 +26,10 @@ from srfpipe.poses.capture import (
 BLENDER_SPLITS = ("train", "val", "test")
 
 
-def read_blender(path: str | Path) -> Capture:
-    """Read a Blender NeRF synthetic capture: `path` holds transforms_{train,val,test}.json."""
+def read_blender(path: str | Path, allowed_roots=()) -> Capture:
+    """Read a Blender NeRF synthetic capture: `path` holds transforms_{train,val,test}.json.
+
+    Image paths must stay inside the capture folder (symlinks may lead into `allowed_roots`)."""
     root = Path(path)
     split_files = [root / f"transforms_{split}.json" for split in BLENDER_SPLITS]
     split_files = [f for f in split_files if f.exists()]
@@ -40,16 +44,17 @@ def read_blender(path: str | Path) -> Capture:
             raise ValueError(f"{json_path}: 'frames' must be a non-empty list")
         if "camera_angle_x" not in meta:
             raise ValueError(f"{json_path}: missing camera_angle_x")
-        angle = float(meta["camera_angle_x"])
+        angle = number(meta["camera_angle_x"], "camera_angle_x", str(json_path), 1e-6, np.pi - 1e-6)
         n_listed += len(frames)
         for index, frame in enumerate(frames):
             where = f"{json_path}: frames[{index}]"
             if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
                 raise ValueError(f"{where}: needs 'file_path' and 'transform_matrix'")
-            file_path = str(frame["file_path"])
-            if not Path(file_path).suffix:
+            file_path = frame["file_path"]
+            if isinstance(file_path, str) and file_path and not Path(file_path).suffix:
                 file_path += ".png"  # Blender NeRF lists frames without the extension
-            relative = resolve_inside(root, file_path, where)
+            relative = resolve_inside(root, file_path, where, allowed_roots)
+            check_unique(image_paths + missing, relative, where)
             if not (root / relative).exists():
                 missing.append(relative)
                 continue

@@ -20,6 +20,11 @@ from srfpipe.images import read_image
 
 log = logging.getLogger(__name__)
 
+# Coordinates, focal lengths and the like beyond this are not a real capture (a unit mix-up, a
+# corrupt file): refused at import rather than overflowing later.
+MAX_VALUE = 1e12
+MAX_IMAGE_SIDE = 1 << 20
+
 
 @dataclass
 class Capture:
@@ -51,31 +56,67 @@ class Capture:
 
 
 def load_json(path: Path) -> dict:
-    """A JSON file whose top level is an object; errors name the file."""
+    """A JSON file whose top level is an object; errors name the file.
+
+    Nesting deeper than Python's recursion limit (a "JSON bomb") is refused as invalid JSON.
+    """
     if not path.is_file():
         raise FileNotFoundError(f"{path}: file does not exist")
     try:
         data = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ValueError(f"{path}: not valid JSON ({exc})") from exc
+    except RecursionError:
+        raise ValueError(f"{path}: not valid JSON (nested too deeply)") from None
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a JSON object at the top level")
     return data
 
 
-def resolve_inside(root: Path, file_path: str, referenced_from: Path | str) -> str:
+def _inside(folder: str, path: str) -> bool:
+    return os.path.commonpath([folder, path]) == folder
+
+
+def resolve_inside(root: Path, file_path: str, referenced_from: Path | str, allowed_roots=()) -> str:
     """`file_path` (relative to `root`, or absolute) as a POSIX path relative to `root`.
 
-    The check is lexical (`..` and absolute paths), so a dataset may hold symlinked image folders,
-    but a path that names a location outside the dataset folder is refused.
+    Two checks: lexically (`..`, absolute paths) the path must name a location inside the dataset
+    folder, and with symlinks resolved it must still lie inside it, or inside one of
+    `allowed_roots` (the scene's `source.allowed_roots`: folders outside the capture that a
+    symlinked image folder may point into). Anything else is refused, naming the file.
     """
+    if not isinstance(file_path, str) or not file_path:
+        raise ValueError(f"{referenced_from}: file_path must be a non-empty string, got {file_path!r}")
     root_abs = os.path.normpath(os.path.abspath(root))
-    full = os.path.normpath(os.path.join(root_abs, os.path.expanduser(str(file_path))))
-    if os.path.commonpath([root_abs, full]) != root_abs or full == root_abs:
+    full = os.path.normpath(os.path.join(root_abs, os.path.expanduser(file_path)))
+    if not _inside(root_abs, full) or full == root_abs:
         raise ValueError(
             f"{referenced_from}: file_path {file_path!r} points outside the dataset folder {root_abs}"
         )
+    real = os.path.realpath(full)
+    allowed = [os.path.realpath(root_abs)] + [os.path.realpath(os.path.abspath(r)) for r in allowed_roots]
+    if not any(_inside(folder, real) for folder in allowed):
+        raise ValueError(
+            f"{referenced_from}: file_path {file_path!r} is a symlink to {real}, outside the dataset folder "
+            f"{root_abs} (list its folder in source.allowed_roots to allow it)"
+        )
     return Path(os.path.relpath(full, root_abs)).as_posix()
+
+
+def check_unique(paths: list[str], relative: str, where: str) -> None:
+    """Refuse a frame whose image is already listed (two poses for one image)."""
+    if relative in paths:
+        raise ValueError(f"{where}: file_path {relative!r} is listed twice (first as frame of image "
+                         f"{paths.index(relative)})")
+
+
+def number(value, key: str, where: str, low: float = -MAX_VALUE, high: float = MAX_VALUE) -> float:
+    """A JSON value that must be a finite number in [low, high], as float; errors name the key."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{where}: {key} must be a number, got {type(value).__name__} {value!r}")
+    if not np.isfinite(value) or not low <= value <= high:
+        raise ValueError(f"{where}: {key}={value!r} is out of range [{low:g}, {high:g}]")
+    return float(value)
 
 
 def check_image_file(path: Path, referenced_from: Path | str) -> None:
@@ -131,6 +172,8 @@ def check_pose(camera_to_world: np.ndarray, where: str) -> None:
     """Raise ValueError (naming `where`) unless the pose has a finite translation and a proper rotation."""
     if not np.all(np.isfinite(camera_to_world)):
         raise ValueError(f"{where}: pose contains NaN or infinite values")
+    if np.max(np.abs(camera_to_world)) > MAX_VALUE:
+        raise ValueError(f"{where}: pose has values above {MAX_VALUE:g} (a unit mix-up or a corrupt file)")
     problem = cameras.check_rotation(camera_to_world[:3, :3])
     if problem:
         raise ValueError(f"{where}: pose rotation {problem}")
@@ -157,9 +200,10 @@ def validate_capture(capture: Capture) -> None:
         where = f"{capture.source_file}: {path}"
         check_pose(capture.camera_to_world[i], where)
         fx, fy, cx, cy = capture.intrinsics[i]
-        if not (np.all(np.isfinite(capture.intrinsics[i])) and fx > 0 and fy > 0):
+        if not (np.all(np.isfinite(capture.intrinsics[i])) and fx > 0 and fy > 0
+                and np.max(np.abs(capture.intrinsics[i])) <= MAX_VALUE):
             raise ValueError(f"{where}: invalid intrinsics {capture.intrinsics[i].tolist()}")
-        if np.any(capture.image_size[i] <= 0):
+        if np.any(capture.image_size[i] <= 0) or np.any(capture.image_size[i] > MAX_IMAGE_SIDE):
             raise ValueError(f"{where}: invalid image size {capture.image_size[i].tolist()}")
         if not np.all(np.isfinite(capture.distortion[i])):
             raise ValueError(f"{where}: distortion contains NaN or infinite values")

@@ -7,6 +7,7 @@ to `camera_to_world`; COLMAP's camera frame and pixel convention are already the
 from __future__ import annotations
 
 import logging
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +44,83 @@ def colmap_camera_parameters(camera, where: str) -> tuple[list[float], list[floa
     )
 
 
+def _camera_param_counts() -> dict[int, int]:
+    import pycolmap
+
+    counts = {}
+    for model_id in range(64):
+        try:
+            model = pycolmap.CameraModelId(model_id)
+            counts[model_id] = len(pycolmap.Camera.create_from_model_id(1, model, 1.0, 1, 1).params)
+        except (ValueError, TypeError, RuntimeError):
+            break
+    return counts
+
+
+class _Records:
+    """A cursor over one COLMAP binary file that names the file and the record when it runs out."""
+
+    def __init__(self, path: Path):
+        self.path, self.data, self.pos = path, path.read_bytes(), 0
+
+    def take(self, fmt: str, what: str) -> tuple:
+        size = struct.calcsize("<" + fmt)
+        if self.pos + size > len(self.data):
+            raise ValueError(f"{self.path}: truncated ({len(self.data)} bytes) in {what}")
+        values = struct.unpack_from("<" + fmt, self.data, self.pos)
+        self.pos += size
+        return values
+
+    def skip(self, size: int, what: str) -> None:
+        if self.pos + size > len(self.data):
+            raise ValueError(f"{self.path}: truncated ({len(self.data)} bytes) in {what}")
+        self.pos += size
+
+    def count(self) -> int:
+        (n,) = self.take("Q", "the record count")
+        return n
+
+    def finish(self, n: int, kind: str) -> None:
+        if self.pos != len(self.data):
+            raise ValueError(f"{self.path}: {len(self.data) - self.pos} bytes after its {n} {kind} "
+                             "(not a COLMAP model file, or a corrupt one)")
+
+
+def check_colmap_binaries(model: Path) -> None:
+    """Walk cameras.bin, images.bin and points3D.bin record by record (COLMAP's binary layout) and
+    raise ValueError naming the file when one is truncated or holds trailing bytes."""
+    if (model / "cameras.bin").is_file():
+        params = _camera_param_counts()
+        f = _Records(model / "cameras.bin")
+        n = f.count()
+        for i in range(n):
+            _, model_id, _, _ = f.take("iiQQ", f"camera {i + 1} of {n}")
+            if model_id not in params:
+                raise ValueError(f"{f.path}: camera {i + 1} of {n} has unknown model id {model_id}")
+            f.skip(8 * params[model_id], f"camera {i + 1} of {n}")
+        f.finish(n, "cameras")
+    if (model / "images.bin").is_file():
+        f = _Records(model / "images.bin")
+        n = f.count()
+        for i in range(n):
+            f.skip(4 + 8 * 7 + 4, f"image {i + 1} of {n}")
+            end = f.data.find(b"\0", f.pos)
+            if end < 0:
+                raise ValueError(f"{f.path}: truncated ({len(f.data)} bytes) in the name of image {i + 1} of {n}")
+            f.pos = end + 1
+            (points,) = f.take("Q", f"image {i + 1} of {n}")
+            f.skip(24 * points, f"the {points} 2-D points of image {i + 1} of {n}")
+        f.finish(n, "images")
+    if (model / "points3D.bin").is_file():
+        f = _Records(model / "points3D.bin")
+        n = f.count()
+        for i in range(n):
+            f.skip(8 + 24 + 3 + 8, f"point {i + 1} of {n}")
+            (track,) = f.take("Q", f"point {i + 1} of {n}")
+            f.skip(8 * track, f"the track of point {i + 1} of {n}")
+        f.finish(n, "points")
+
+
 def _find_colmap_model(root: Path, model_dir: str | None) -> Path:
     candidates = [model_dir] if model_dir else ["sparse/0", "sparse", "."]
     for candidate in candidates:
@@ -53,20 +131,26 @@ def _find_colmap_model(root: Path, model_dir: str | None) -> Path:
     raise FileNotFoundError(f"{root}: no COLMAP model (cameras.bin or cameras.txt) in {tried}")
 
 
-def read_colmap(path: str | Path, images_dir: str | None = None, model_dir: str | None = None) -> Capture:
-    """Read a COLMAP sparse model (binary or text) and its images folder through pycolmap."""
+def read_colmap(path: str | Path, images_dir: str | None = None, model_dir: str | None = None,
+                allowed_roots=()) -> Capture:
+    """Read a COLMAP sparse model (binary or text) and its images folder through pycolmap.
+
+    Binary files are checked record by record first (`check_colmap_binaries`): pycolmap reads a
+    truncated file as garbage, or allocates without bound. Image paths must stay inside the
+    capture folder (symlinks may lead into `allowed_roots`)."""
     import pycolmap
 
     root = Path(path)
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: COLMAP capture folder does not exist")
     model = _find_colmap_model(root, model_dir)
+    check_colmap_binaries(model)
     reconstruction = pycolmap.Reconstruction()
     try:
         reconstruction.read(str(model))
     except Exception as exc:  # pycolmap raises RuntimeError/ValueError subclasses for bad files
         raise ValueError(f"{model}: cannot read the COLMAP model ({exc})") from exc
-    images_folder = resolve_inside(root, images_dir or "images", f"{root}: source.images_dir")
+    images_folder = resolve_inside(root, images_dir or "images", f"{root}: source.images_dir", allowed_roots)
 
     image_paths, poses, intrinsics, sizes, distortion, missing = [], [], [], [], [], []
     unposed = 0
@@ -75,7 +159,7 @@ def read_colmap(path: str | Path, images_dir: str | None = None, model_dir: str 
             unposed += 1  # an unregistered image: COLMAP could not place it
             continue
         where = f"{model}: image {image.name!r}"
-        relative = resolve_inside(root, f"{images_folder}/{image.name}", where)
+        relative = resolve_inside(root, f"{images_folder}/{image.name}", where, allowed_roots)
         if not (root / relative).is_file():
             missing.append(relative)
             continue

@@ -15,8 +15,11 @@ import numpy as np
 from srfpipe import cameras
 from srfpipe.poses.capture import (
     Capture,
+    MAX_IMAGE_SIDE,
     check_image_file,
+    check_unique,
     load_json,
+    number,
     orthonormalize,
     pose_matrix,
     read_image_size,
@@ -31,6 +34,10 @@ NERFSTUDIO_INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "
 def _frame_intrinsics(meta: dict, frame: dict, image: Path, where: str):
     """fx, fy, cx, cy, (w, h), (k1, k2, p1, p2) of one nerfstudio frame (frame keys override global)."""
     values = {k: frame.get(k, meta.get(k)) for k in NERFSTUDIO_INTRINSIC_KEYS}
+    for key, value in values.items():
+        if key != "camera_model" and value is not None:
+            high = MAX_IMAGE_SIDE if key in ("w", "h") else None
+            values[key] = number(value, key, where, *((1, high) if high else ()))
     model = values["camera_model"] or "OPENCV"
     if model not in ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE"):
         raise ValueError(f"{where}: camera_model {model!r} is not supported (OPENCV, PINHOLE, SIMPLE_PINHOLE)")
@@ -70,8 +77,10 @@ def _similarity_4x4(matrix, where: str) -> np.ndarray:
     return transform
 
 
-def read_nerfstudio(path: str | Path, source_format: str = "nerfstudio") -> Capture:
-    """Read a nerfstudio capture: `path` is the folder holding transforms.json, or the file itself."""
+def read_nerfstudio(path: str | Path, source_format: str = "nerfstudio", allowed_roots=()) -> Capture:
+    """Read a nerfstudio capture: `path` is the folder holding transforms.json, or the file itself.
+
+    Image paths must stay inside the capture folder (symlinks may lead into `allowed_roots`)."""
     path = Path(path)
     json_path = path / "transforms.json" if path.is_dir() else path
     if path.is_dir() and not json_path.exists():
@@ -87,7 +96,8 @@ def read_nerfstudio(path: str | Path, source_format: str = "nerfstudio") -> Capt
         where = f"{json_path}: frames[{index}]"
         if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
             raise ValueError(f"{where}: needs 'file_path' and 'transform_matrix'")
-        relative = resolve_inside(root, frame["file_path"], where)
+        relative = resolve_inside(root, frame["file_path"], where, allowed_roots)
+        check_unique(image_paths + missing, relative, where)
         if not (root / relative).exists():
             missing.append(relative)
             continue
@@ -106,7 +116,7 @@ def read_nerfstudio(path: str | Path, source_format: str = "nerfstudio") -> Capt
     camera_to_world = cameras.opengl_to_opencv(np.stack(poses))
     points = None
     if meta.get("ply_file_path"):
-        ply = root / resolve_inside(root, meta["ply_file_path"], f"{json_path}: ply_file_path")
+        ply = root / resolve_inside(root, meta["ply_file_path"], f"{json_path}: ply_file_path", allowed_roots)
         points = _read_ply_points(ply)
     if "applied_transform" in meta:
         # transform_matrix = applied_transform @ original camera_to_world: undo it.

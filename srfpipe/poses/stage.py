@@ -42,12 +42,13 @@ def load_capture(source: dict, capture_dir: str | Path | None = None) -> Capture
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: capture does not exist")
+    allowed = source.get("allowed_roots") or ()
     if fmt in ("nerfstudio", "orchard", "plant"):
-        capture = read_nerfstudio(path, source_format=fmt)
+        capture = read_nerfstudio(path, source_format=fmt, allowed_roots=allowed)
     elif fmt == "blender":
-        capture = read_blender(path)
+        capture = read_blender(path, allowed_roots=allowed)
     else:
-        capture = read_colmap(path, source.get("images_dir"), source.get("model_dir"))
+        capture = read_colmap(path, source.get("images_dir"), source.get("model_dir"), allowed_roots=allowed)
     capture = attach_ground_truth(capture)
     validate_capture(capture)
     return capture

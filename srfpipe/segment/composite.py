@@ -140,6 +140,9 @@ def _open_masks(paths: list[str | Path], frames: Frames):
     for path in paths:
         group = open_artifact(path, stage="segment")
         info = meta(group)
+        if "probability" not in group or group["probability"].dtype != np.uint8:
+            found = group["probability"].dtype if "probability" in group else "no array"
+            raise ValueError(f"{path}: 'probability' must be uint8 (round(255 p)), found {found}")
         _check_mask_frames(path, group["probability"].shape, info.get("names"), frames)
         if info["prompt"] in prompts:
             raise ValueError(f"{path}: prompt {info['prompt']!r} is given twice")

@@ -17,6 +17,9 @@ from pathlib import Path
 import numpy as np
 
 
+FAR_RADIUS = 1e9  # world units; see SemanticRadianceField._to_scene
+
+
 def _points(points_world, name: str = "points_world") -> np.ndarray:
     points = np.asarray(points_world, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
@@ -56,6 +59,14 @@ class SemanticRadianceField:
     def _to_scene(self, points_world: np.ndarray):
         import torch
 
+        # Huge (finite) points would overflow float32 and poison the grid lookup: pull them in
+        # along their direction to a radius where the contraction has saturated (2 - 1/r rounds
+        # to 2 in float32), which gives the same answer.
+        far = np.max(np.abs(points_world), axis=1) if len(points_world) else np.zeros(0)
+        if np.any(far > FAR_RADIUS):
+            points_world = points_world.copy()
+            rows = far > FAR_RADIUS
+            points_world[rows] = points_world[rows] / far[rows, None] * FAR_RADIUS
         p = points_world @ self.scene_from_world[:3, :3].T + self.scene_from_world[:3, 3]
         return torch.as_tensor(p, dtype=torch.float32, device=self.device)
 

@@ -131,8 +131,12 @@ def save_checkpoint(folder: Path, state: dict, keep: int = 2) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"step-{state['step']:09d}.pt"
     tmp = path.with_suffix(".pt.tmp")
-    torch.save(state, tmp)
-    tmp.replace(path)
+    try:
+        torch.save(state, tmp)
+        tmp.replace(path)
+    except BaseException:  # a full disk: no half-written checkpoint left behind
+        tmp.unlink(missing_ok=True)
+        raise
     for old in sorted(folder.glob("step-*.pt"))[:-keep]:
         old.unlink(missing_ok=True)
 

@@ -1,0 +1,512 @@
+"""The bad-input corpus: every case is refused with an error naming the file and the problem, and
+nothing is written (or, for inputs that are merely unusual, handled correctly).
+
+Cases that other test files already hold (NaN/scaled/reflected poses, `../` and absolute paths,
+16-bit, grey, RGBA and EXIF-rotated images, mixed sizes, wrong ONNX inputs, unknown prompts,
+wrongly sized masks, ...) carry the `bad_input` marker there; `benchmarks/reliability.py` counts
+the whole corpus with `pytest -m bad_input`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from srfpipe.artifacts import ArtifactError, create_artifact, open_artifact
+from srfpipe.config import ConfigError, validate_scene
+from srfpipe.images import downscale_images
+from srfpipe.poses import import_poses, read_blender, read_colmap, read_nerfstudio
+from tests.test_poses import edit_transforms, ring, write_blender, write_colmap_model, write_nerfstudio
+
+pytestmark = pytest.mark.bad_input
+
+NERFSTUDIO = {"format": "nerfstudio"}
+
+
+def assert_refused(call, out: Path | None, names, problem: str, exc=(ValueError, OSError, RuntimeError)):
+    """`call()` raises `exc` whose message names `names` (a path or its file name) and matches
+    `problem`; `out` and any hidden partial sibling of it do not exist afterwards."""
+    with pytest.raises(exc) as err:
+        call()
+    message = str(err.value)
+    assert str(names) in message, f"the error does not name {names}: {message}"
+    assert re.search(problem, message), f"the error does not say {problem!r}: {message}"
+    if out is not None:
+        assert not out.exists(), f"{out} was written"
+        assert not list(out.parent.glob(f".{out.name}.*")), f"a partial {out.name} was left"
+    return message
+
+
+def capture(root: Path, n: int = 3, ext: str = "png") -> Path:
+    """A nerfstudio capture of n noise images (PNG, or JPEG)."""
+    write_nerfstudio(root, ring(n))
+    if ext != "png":
+        for i in range(n):
+            png = root / "images" / f"frame_{i:05d}.png"
+            cv2.imwrite(str(png.with_suffix(f".{ext}")), cv2.imread(str(png)))
+            png.unlink()
+        edit_transforms(root, lambda d: [f.update(file_path=f["file_path"].replace(".png", f".{ext}"))
+                                         for f in d["frames"]])
+    return root
+
+
+# --------------------------------------------------------------------------------------- images
+
+
+@pytest.mark.parametrize("damage, problem", [
+    ("truncate_png", "corrupt or unreadable image"),
+    ("truncate_jpg", "truncated JPEG"),
+    ("zero_bytes", "corrupt or unreadable image"),
+    ("garbage", "corrupt or unreadable image"),
+])
+def test_image_damaged_after_import_fails_downscale_naming_it(tmp_path, damage, problem):
+    ext = "jpg" if damage == "truncate_jpg" else "png"
+    root = capture(tmp_path / "cap", ext=ext)
+    poses = import_poses(NERFSTUDIO, root, {}, tmp_path / "poses.zarr", progress=False)
+    bad = root / "images" / f"frame_00001.{ext}"
+    data = bad.read_bytes()
+    bad.write_bytes({"zero_bytes": b"", "garbage": os.urandom(len(data))}.get(damage, data[: len(data) // 2]))
+    out = tmp_path / "images.zarr"
+    assert_refused(lambda: downscale_images(poses, {"downscale": 1}, out, progress=False), out, bad, problem)
+
+
+def test_zero_byte_image_is_refused_at_import(tmp_path):
+    root = capture(tmp_path / "cap")
+    bad = root / "images" / "frame_00002.png"
+    bad.write_bytes(b"")
+    out = tmp_path / "poses.zarr"
+    assert_refused(lambda: import_poses(NERFSTUDIO, root, {}, out, progress=False), out, bad, "corrupt")
+
+
+def test_complete_jpeg_with_trailing_bytes_is_accepted(tmp_path):
+    """The truncation check must not refuse a whole JPEG that carries a trailer after its end."""
+    root = capture(tmp_path / "cap", ext="jpg")
+    image = root / "images" / "frame_00000.jpg"
+    image.write_bytes(image.read_bytes() + b"vendor trailer")
+    poses = import_poses(NERFSTUDIO, root, {}, tmp_path / "poses.zarr", progress=False)
+    images = open_artifact(downscale_images(poses, {"downscale": 1}, tmp_path / "images.zarr", progress=False))
+    assert images["images"].shape == (3, 24, 32, 3)
+
+
+# ---------------------------------------------------------------------------- poses (nerfstudio)
+
+
+@pytest.mark.parametrize("matrix, problem", [
+    ([[1, 0, 0, np.inf], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "NaN or infinite"),
+    ([[1, 0.3, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "not orthonormal"),
+    ([[1, 0, 0, 1e200], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "values above"),
+    ("identity", "not a numeric matrix"),
+    ([[1, 0, 0], [0, 1, 0], [0, 0, 1]], "must be 4x4"),
+], ids=["inf", "sheared", "huge_translation", "string", "3x3"])
+def test_bad_transform_matrix(tmp_path, matrix, problem):
+    path = edit_transforms(capture(tmp_path), lambda d: d["frames"][1].update(transform_matrix=matrix))
+    assert_refused(lambda: read_nerfstudio(tmp_path), None, f"{path}: frames[1]", problem)
+
+
+@pytest.mark.parametrize("edit, where, problem", [
+    (lambda d: d["frames"][0].pop("file_path"), "frames[0]", "needs 'file_path'"),
+    (lambda d: d["frames"][2].pop("transform_matrix"), "frames[2]", "needs 'file_path' and 'transform_matrix'"),
+    (lambda d: d["frames"][2].update(file_path=d["frames"][0]["file_path"]), "frames[2]", "listed twice"),
+    (lambda d: d["frames"][1].update(file_path=17), "frames[1]", "must be a non-empty string"),
+    (lambda d: d["frames"][1].update(file_path=""), "frames[1]", "must be a non-empty string"),
+    (lambda d: d.update(fl_x="thirty"), "frames[0]", "fl_x must be a number, got str"),
+    (lambda d: d.update(fl_x=1e300), "frames[0]", r"fl_x=1e\+300 is out of range"),
+    (lambda d: d.update(w=10**9), "frames[0]", "w=1000000000 is out of range"),
+    (lambda d: d.update(cx=True), "frames[0]", "cx must be a number, got bool"),
+    (lambda d: d.update(frames=[]), "transforms.json", "'frames' must be a non-empty list"),
+    (lambda d: d.update(frames={"0": {}}), "transforms.json", "'frames' must be a non-empty list"),
+    (lambda d: d["frames"].__setitem__(1, "images/frame_00001.png"), "frames[1]", "needs 'file_path'"),
+], ids=["no_file_path", "no_transform", "duplicate_file_path", "file_path_int", "file_path_empty",
+        "focal_string", "focal_huge", "width_huge", "cx_bool", "empty_frames", "frames_dict", "frame_string"])
+def test_bad_transforms_json(tmp_path, edit, where, problem):
+    path = edit_transforms(capture(tmp_path), edit)
+    out = tmp_path / "poses.zarr"
+    message = assert_refused(lambda: import_poses(NERFSTUDIO, tmp_path, {}, out, progress=False), out, path, problem)
+    assert where in message
+
+
+@pytest.mark.parametrize("text, problem", [
+    ("[" * 100_000 + "]" * 100_000, "nested too deeply"),
+    ('{"frames": [' + "{" * 50_000, "not valid JSON"),
+    ("\x89PNG not json", "not valid JSON"),
+    ("[1, 2, 3]", "expected a JSON object"),
+], ids=["json_bomb_lists", "json_bomb_truncated", "binary", "top_level_list"])
+def test_transforms_json_that_is_not_a_capture(tmp_path, text, problem):
+    capture(tmp_path)
+    (tmp_path / "transforms.json").write_text(text)
+    out = tmp_path / "poses.zarr"
+    assert_refused(lambda: import_poses(NERFSTUDIO, tmp_path, {}, out, progress=False), out,
+                   tmp_path / "transforms.json", problem)
+
+
+@pytest.fixture
+def outside_image(tmp_path) -> Path:
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    image = outside / "secret.png"
+    cv2.imwrite(str(image), np.zeros((24, 32, 3), np.uint8))
+    return image
+
+
+def test_symlink_pointing_outside_is_refused(tmp_path, outside_image):
+    root = capture(tmp_path / "cap")
+    link = root / "images" / "frame_00001.png"
+    link.unlink()
+    link.symlink_to(outside_image)
+    out = tmp_path / "poses.zarr"
+    assert_refused(lambda: import_poses(NERFSTUDIO, root, {}, out, progress=False), out,
+                   "frames[1]", f"is a symlink to {outside_image}, outside the dataset folder")
+
+
+def test_symlinked_folder_inside_an_allowed_root_is_accepted(tmp_path, outside_image):
+    root = capture(tmp_path / "cap")
+    (root / "shared").symlink_to(outside_image.parent)
+    edit_transforms(root, lambda d: d["frames"][1].update(file_path="shared/secret.png"))
+    with pytest.raises(ValueError, match="source.allowed_roots"):
+        read_nerfstudio(root)
+    source = {**NERFSTUDIO, "allowed_roots": [str(outside_image.parent)]}
+    out = import_poses(source, root, {}, tmp_path / "poses.zarr", progress=False)
+    assert open_artifact(out).attrs["srfpipe"]["image_paths"][1] == "shared/secret.png"
+
+
+def test_blender_camera_angle_of_the_wrong_type(tmp_path):
+    write_blender(tmp_path, ring(3), 0.69, n_train=2)
+    path = tmp_path / "transforms_train.json"
+    data = json.loads(path.read_text())
+    path.write_text(json.dumps({**data, "camera_angle_x": "wide"}))
+    assert_refused(lambda: read_blender(tmp_path), None, path, "camera_angle_x must be a number, got str")
+
+
+def test_blender_duplicate_frame(tmp_path):
+    write_blender(tmp_path, ring(3), 0.69, n_train=2)
+    path = tmp_path / "transforms_train.json"
+    data = json.loads(path.read_text())
+    data["frames"].append(data["frames"][0])
+    path.write_text(json.dumps(data))
+    assert_refused(lambda: read_blender(tmp_path), None, path, "listed twice")
+
+
+# ------------------------------------------------------------------------------------------ COLMAP
+
+
+@pytest.mark.parametrize("name, keep", [("cameras.bin", 0.9), ("images.bin", 0.5), ("points3D.bin", 0.9),
+                                         ("images.bin", 0.0)])
+def test_truncated_colmap_binary_names_file_and_record(tmp_path, name, keep):
+    write_colmap_model(tmp_path, text=False)
+    path = tmp_path / "sparse" / "0" / name
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * keep)])
+    out = tmp_path / "poses.zarr"
+    source = {"format": "colmap", "path": str(tmp_path)}
+    assert_refused(lambda: import_poses(source, None, {}, out, progress=False), out, path, r"truncated \(\d+ bytes\) in")
+
+
+def test_colmap_binary_with_trailing_bytes(tmp_path):
+    write_colmap_model(tmp_path, text=False)
+    path = tmp_path / "sparse" / "0" / "cameras.bin"
+    path.write_bytes(path.read_bytes() + b"\0" * 7)
+    assert_refused(lambda: read_colmap(tmp_path), None, path, "7 bytes after its 2 cameras")
+
+
+def _deregister(model: Path, keep: int) -> None:
+    import pycolmap
+
+    reconstruction = pycolmap.Reconstruction(str(model))
+    for frame_id in sorted(reconstruction.reg_frame_ids())[keep:]:
+        reconstruction.deregister_frame(frame_id)
+    reconstruction.write_binary(str(model))
+
+
+def test_colmap_images_it_did_not_register_are_left_out(tmp_path):
+    """COLMAP writes only the images it registered: image files beside them are not imported."""
+    write_colmap_model(tmp_path, text=False)
+    _deregister(tmp_path / "sparse" / "0", keep=3)
+    capture_ = read_colmap(tmp_path)
+    assert capture_.image_paths == ["images/im_0.jpg", "images/im_1.jpg", "images/im_2.jpg"]
+    assert (tmp_path / "images" / "im_3.jpg").exists()
+
+
+def test_colmap_model_without_registered_images(tmp_path):
+    write_colmap_model(tmp_path, text=False)
+    model = tmp_path / "sparse" / "0"
+    _deregister(model, keep=0)
+    out = tmp_path / "poses.zarr"
+    source = {"format": "colmap", "path": str(tmp_path)}
+    assert_refused(lambda: import_poses(source, None, {}, out, progress=False), out, model, "no posed images")
+
+
+# ------------------------------------------------------------------------------------------ masks
+
+
+def test_import_mask_of_the_wrong_dtype_or_channels(tmp_path):
+    from tests.test_segment import options, red_blue_images, write_images
+
+    from srfpipe.segment.run import prompt_options, segment_images
+
+    images = write_images(tmp_path / "images.zarr", red_blue_images(n=1, width=40, height=30))
+    folder = tmp_path / "masks"
+    folder.mkdir()
+    opts = prompt_options(options(backend="import", **{"import": {"path": str(folder)}}), "apple")
+    out = tmp_path / "apple.zarr"
+    mask = folder / "frame_00000_apple.tiff"
+    opts["import"]["pattern"] = "{name}_{prompt}.tiff"
+    cv2.imwrite(str(mask), np.full((30, 40), 0.5, np.float32))
+    assert_refused(lambda: segment_images(images, "apple", opts, out, progress=False), out, mask,
+                   "expected an 8- or 16-bit mask, got float32")
+    colour = np.zeros((30, 40, 3), np.uint8)
+    colour[..., 2] = 255  # a red overlay, not a grey mask saved as RGB
+    cv2.imwrite(str(mask), colour)
+    assert_refused(lambda: segment_images(images, "apple", opts, out, progress=False), out, mask,
+                   "expected a single-channel")
+
+
+def test_composite_refuses_masks_of_the_wrong_dtype(tmp_path):
+    from tests.test_segment import blank_images
+
+    from srfpipe.segment.composite import composite_masks
+
+    images = blank_images(tmp_path / "images.zarr")
+    masks = tmp_path / "apple.zarr"
+    with create_artifact(masks, stage="segment") as group:
+        group.create_array("probability", data=np.full((2, 4, 5), 0.7, np.float32))
+        group.attrs["srfpipe"] = {**group.attrs["srfpipe"], "prompt": "apple", "threshold": 0.5,
+                                  "names": ["frame_00000", "frame_00001"]}
+    out = tmp_path / "labels.zarr"
+    assert_refused(lambda: composite_masks(images, [masks], {}, out, progress=False), out, masks,
+                   "must be uint8.*found float32")
+
+
+# ------------------------------------------------------------------------------------------- ONNX
+
+
+def test_file_that_is_not_onnx(tmp_path):
+    from tests.test_segment import options, red_blue_images, write_images
+
+    from srfpipe.segment.run import prompt_options, segment_images
+
+    images = write_images(tmp_path / "images.zarr", red_blue_images(n=1))
+    model = tmp_path / "model.onnx"
+    model.write_bytes(b"PK\x03\x04 this is a zip, not a protobuf" * 20)
+    out = tmp_path / "apple.zarr"
+    opts = prompt_options(options(model=str(model)), "apple")
+    assert_refused(lambda: segment_images(images, "apple", opts, out, progress=False), out, model,
+                   "onnxruntime cannot load the model")
+
+
+def test_onnx_model_with_the_wrong_output(tmp_path):
+    import torch
+
+    from tests.test_segment import export, options, red_blue_images, write_images
+
+    from srfpipe.segment.run import prompt_options, segment_images
+
+    class Pooled(torch.nn.Module):
+        def forward(self, image):
+            return image.mean(dim=(2, 3))  # (batch, 3): no spatial axes
+
+    model = export(Pooled(), (torch.zeros(1, 3, 8, 8),), tmp_path / "pooled.onnx", ["image"], ["scores"],
+                   metadata={"classes": ["apple", "branch", "leaf"]})
+    images = write_images(tmp_path / "images.zarr", red_blue_images(n=1))
+    out = tmp_path / "apple.zarr"
+    opts = prompt_options(options(model=str(model)), "apple")
+    assert_refused(lambda: segment_images(images, "apple", opts, out, progress=False), out, model,
+                   r"must output \(batch, classes, h, w\)")
+
+
+# ------------------------------------------------------------------------------------------ config
+
+
+@pytest.mark.parametrize("scene, key, hint", [
+    ({"imagez": {"downscale": 2}}, "(top level)", "'imagez' -> 'images'"),
+    ({"train": {"iteration": 5}}, "train", "'iteration' -> 'iterations'"),
+    ({"occupancy": {"voxel_sise": 0.1}}, "occupancy", "'voxel_sise' -> 'voxel_size'"),
+])
+def test_unknown_key_gets_a_suggestion(scene, key, hint):
+    assert_refused(lambda: validate_scene(scene, "s.yaml"), None, f"s.yaml: {key}", f"did you mean {re.escape(hint)}",
+                   ConfigError)
+
+
+@pytest.mark.parametrize("scene, key", [
+    ({"images": {"downscale": 0}}, "images.downscale"),
+    ({"segmentation": {"threshold": 1.5}}, "segmentation.threshold"),
+    ({"evaluate": {"holdout_every": 1}}, "evaluate.holdout_every"),
+    ({"train": {"iterations": -3}}, "train.iterations"),
+    ({"occupancy": {"alpha_threshold": 1.0}}, "occupancy.alpha_threshold"),
+])
+def test_out_of_range_value_names_the_key(scene, key):
+    assert_refused(lambda: validate_scene(scene, "s.yaml"), None, f"s.yaml: {key}", "minimum|maximum", ConfigError)
+
+
+@pytest.mark.parametrize("scene, problem", [
+    ({"poses": {"bounds": [[0, 0, 0], [1, -1, 1]]}}, r"poses.bounds: the minimum \[0, 0, 0\] must be below"),
+    ({"segmentation": {"prompts": ["apple"], "thresholds": {"pear": 0.3}}},
+     r"segmentation.thresholds: \['pear'\] are not among segmentation.prompts"),
+    ({"segmentation": {"backend": "import"}}, "segmentation.import.path is not set"),
+    ({"occupancy": {"avoid": ["branch", "apple"], "reach": ["apple"]}}, r"\['apple'\] are both to avoid and to reach"),
+    ({"train": {"near": 5.0, "far": 2.0}}, "train.near 5.0 must be below train.far 2.0"),
+], ids=["bounds", "thresholds", "import_path", "avoid_reach", "near_far"])
+def test_contradictory_settings(scene, problem):
+    assert_refused(lambda: validate_scene(scene, "s.yaml"), None, "s.yaml", problem, ConfigError)
+
+
+# ---------------------------------------------------------------------------------- Zarr artifacts
+
+
+@pytest.mark.parametrize("version", [2, 0, None, "1"])
+def test_artifact_of_an_incompatible_schema_version(tmp_path, version):
+    path = tmp_path / "images.zarr"
+    with create_artifact(path, "downscale") as group:
+        pass
+    import zarr
+
+    group = zarr.open_group(str(path), mode="r+")
+    attrs = dict(group.attrs["srfpipe"])
+    attrs["schema_version"] = version
+    group.attrs["srfpipe"] = attrs
+    assert_refused(lambda: open_artifact(path, stage="downscale"), None, path,
+                   rf"found {re.escape(repr(version))} .*expected 1", ArtifactError)
+
+
+def test_stage_refuses_an_input_of_another_schema_version(tmp_path):
+    import zarr
+
+    root = capture(tmp_path / "cap")
+    poses = import_poses(NERFSTUDIO, root, {}, tmp_path / "poses.zarr", progress=False)
+    group = zarr.open_group(str(poses), mode="r+")
+    group.attrs["srfpipe"] = {**dict(group.attrs["srfpipe"]), "schema_version": 7}
+    out = tmp_path / "images.zarr"
+    assert_refused(lambda: downscale_images(poses, {"downscale": 1}, out, progress=False), out, poses,
+                   "found 7 .*expected 1")
+
+
+# ----------------------------------------------------------------------------- hypothesis: capture
+
+_json_scalar = st.one_of(st.none(), st.booleans(), st.integers(-(10**20), 10**20),
+                         st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=12))
+_json_value = st.recursive(_json_scalar, lambda inner: st.one_of(st.lists(inner, max_size=4),
+                                                                 st.dictionaries(st.text(max_size=8), inner, max_size=4)),
+                           max_leaves=12)
+_matrix = st.one_of(
+    st.lists(st.lists(st.floats(allow_nan=True, allow_infinity=True, width=64), min_size=4, max_size=4),
+             min_size=3, max_size=4),
+    _json_value,
+)
+_frame = st.fixed_dictionaries(
+    {},
+    optional={
+        "file_path": st.one_of(st.sampled_from(["images/frame_00000.png", "images/frame_00001.png", "../x.png",
+                                                "/etc/passwd", "images/none.png", "", "images/"]), _json_scalar),
+        "transform_matrix": _matrix,
+        "fl_x": _json_scalar, "w": _json_scalar, "camera_model": _json_scalar,
+    },
+)
+_document = st.one_of(
+    _json_value,
+    st.fixed_dictionaries({"frames": st.lists(_frame, max_size=4)},
+                          optional={"fl_x": st.one_of(st.floats(0.1, 1e4), _json_scalar),
+                                    "fl_y": _json_scalar, "w": _json_scalar, "h": _json_scalar,
+                                    "cx": _json_scalar, "k1": _json_scalar, "camera_model": _json_scalar,
+                                    "applied_transform": _matrix, "ply_file_path": _json_scalar}),
+)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(document=_document)
+def test_random_transforms_json_is_read_or_refused_naming_the_file(tmp_path, document):
+    """Any JSON document: a valid capture, or ValueError/FileNotFoundError naming transforms.json."""
+    root = tmp_path / "cap"
+    if not (root / "images").exists():
+        write_nerfstudio(root, ring(2))
+    path = root / "transforms.json"
+    path.write_text(json.dumps(document))  # NaN and inf as the bare literals capture tools write
+    try:
+        result = read_nerfstudio(root)
+    except (ValueError, FileNotFoundError) as exc:
+        assert str(path) in str(exc), str(exc)
+        return
+    assert np.all(np.isfinite(result.camera_to_world)) and np.all(np.isfinite(result.intrinsics))
+    assert all(not p.startswith("..") and not p.startswith("/") for p in result.image_paths)
+
+
+# ------------------------------------------------------------------------------ queries
+
+
+_coordinate = st.one_of(st.floats(-1.0, 1.0), st.floats(allow_nan=False, allow_infinity=True),
+                        st.sampled_from([1e308, -1e308, 3.4e38, 1e20, -1e-300]))
+_points = st.lists(st.tuples(_coordinate, _coordinate, _coordinate), min_size=1, max_size=20)
+
+
+@pytest.fixture(scope="module")
+def small_cache(tmp_path_factory):
+    from srfpipe.occupancy import OccupancyCache, distill
+    from tests.test_occupancy import sphere_field
+
+    path = tmp_path_factory.mktemp("cache") / "occupancy.zarr"
+    distill(sphere_field(), path, {"voxel_size": 0.05, "supersample": 2, "avoid": [], "reach": ["apple"],
+                                   "brick": 16}, progress=False)
+    return OccupancyCache.load(path)
+
+
+@settings(max_examples=200, deadline=None)
+@given(points=_points)
+def test_random_cache_queries_answer_or_refuse_clearly(small_cache, points):
+    """Finite or infinite points: free space outside the box, a finite gradient of unit length
+    there, never NaN. (NaN itself is refused, see test_occupancy.)"""
+    cache = small_cache
+    p = np.asarray(points, dtype=np.float64)
+    outside = ~np.all((p >= cache.bounds_world[0]) & (p <= cache.bounds_world[1]), axis=1)
+    occupied = cache.occupancy(p)
+    density = cache.density(p)
+    semantic = cache.semantic(p)
+    distance, gradient = cache.distance(p, "apple")
+    assert not occupied[outside].any() and np.all(density[outside] == 0) and np.all(semantic[outside] == 0)
+    assert not np.isnan(distance).any() and np.all(np.isfinite(gradient))
+    assert np.all(distance[outside] > 0)
+    # outside the box: the unit normal from the box plus the tangential part of the gradient at it
+    norms = np.linalg.norm(gradient[outside], axis=1)
+    assert np.all((norms >= 1 - 1e-6) & (norms <= 2))
+    t, hit = cache.raycast(p[np.isfinite(p).all(1)], np.ones((int(np.isfinite(p).all(1).sum()), 3)))
+    assert not np.isnan(t).any()
+
+
+def test_nan_or_inf_query_of_the_field_is_refused_and_huge_points_answer(tiny_field):
+    for bad in (np.nan, np.inf, -np.inf):
+        points = np.zeros((4, 3))
+        points[2, 1] = bad
+        for query in (tiny_field.density, tiny_field.semantic):
+            with pytest.raises(ValueError, match="NaN or infinite"):
+                query(points)
+
+
+@settings(max_examples=60, deadline=None)
+@given(points=st.lists(st.tuples(*[st.one_of(st.floats(-2, 2), st.floats(allow_nan=False, allow_infinity=False))] * 3),
+                       min_size=1, max_size=16))
+def test_random_field_queries_are_finite(tiny_field, points):
+    p = np.asarray(points, dtype=np.float64)
+    density = tiny_field.density(p)
+    semantic = tiny_field.semantic(p)
+    assert np.all(np.isfinite(density)) and np.all(density >= 0)
+    assert np.all((semantic >= 0) & (semantic <= 1))
+    outside = ~np.all((p >= tiny_field.bounds_world[0]) & (p <= tiny_field.bounds_world[1]), axis=1)
+    assert np.all(density[outside] == 0)
+
+
+@pytest.fixture(scope="module")
+def tiny_field(tmp_path_factory):
+    from srfpipe.srf.query import SemanticRadianceField
+    from srfpipe.srf.synthetic import write_scene
+    from srfpipe.srf.trainer import train
+    from tests.test_train import tiny_options
+
+    folder = tmp_path_factory.mktemp("field")
+    images, labels = write_scene(folder, views=6, width=24, height=16)
+    train(images, labels, folder / "srf.zarr", tiny_options(iterations=4, checkpoint_every=0), holdout_every=3)
+    return SemanticRadianceField.load(folder / "srf.zarr", device="cpu")
