@@ -16,6 +16,7 @@ finishes, so an interrupted stage never leaves anything that a later rule could 
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import os
 import shutil
 import socket
@@ -90,6 +91,9 @@ def provenance(stage: str, config: dict | None, inputs: list[str | Path] | None,
     )
 
 
+_DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EIO, errno.EFBIG)
+
+
 def _owner_tag() -> str:
     """host-pid: which process a hidden partial/old sibling belongs to."""
     return f"{socket.gethostname().replace('-', '_')}-{os.getpid()}"
@@ -139,7 +143,12 @@ def atomic_directory(path: str | Path) -> Iterator[Path]:
     tmp = path.with_name(f".{path.name}.partial-{_owner_tag()}-{uuid.uuid4().hex[:8]}")
     tmp.mkdir()
     try:
-        yield tmp
+        try:
+            yield tmp
+        except OSError as exc:
+            if exc.filename is None and exc.errno in _DISK_ERRORS:  # zarr's stores name no file
+                raise OSError(exc.errno, f"{exc.strerror or exc}: writing", str(path)) from exc
+            raise
         old = None
         if path.exists():
             old = path.with_name(f".{path.name}.old-{_owner_tag()}-{uuid.uuid4().hex[:8]}")

@@ -2,6 +2,8 @@
 
 import math
 
+import numpy as np
+
 import pytest
 import torch
 
@@ -104,3 +106,44 @@ def test_floater_counts_of_empty_rays_are_zero():
     assert significant.tolist() == [0, 0, 0, 0] and floaters.tolist() == [0, 0, 0, 0]
     significant, floaters = floater_counts(torch.zeros(2, 5), torch.rand(2, 5), torch.ones(2, 5))
     assert significant.sum() == 0 and floaters.sum() == 0
+
+
+# ----------------------------------------------------------------------------- distortion loss
+
+
+def brute_force_distortion(w, s0, s1):
+    mid, length = 0.5 * (s0 + s1), s1 - s0
+    between = (w[:, :, None] * w[:, None, :] * (mid[:, :, None] - mid[:, None, :]).abs()).sum((1, 2))
+    return between + (w**2 * length).sum(-1) / 3.0
+
+
+def test_distortion_matches_the_double_sum_of_mip_nerf_360():
+    g = torch.Generator().manual_seed(0)
+    edges = torch.rand(16, 33, generator=g).sort(dim=-1).values.double()
+    w = torch.rand(16, 32, generator=g).double()
+    w = w / w.sum(-1, keepdim=True) * 0.9
+    np.testing.assert_allclose(rendering.distortion(w, edges[:, :-1], edges[:, 1:]),
+                               brute_force_distortion(w, edges[:, :-1], edges[:, 1:]), rtol=1e-5)
+
+
+def test_distortion_is_small_for_a_surface_and_large_for_fog():
+    edges = torch.linspace(0.0, 1.0, 65)[None]
+    s0, s1 = edges[:, :-1], edges[:, 1:]
+    surface = torch.zeros(1, 64)
+    surface[0, 40] = 1.0
+    fog = torch.full((1, 64), 1.0 / 64)
+    assert rendering.distortion(surface, s0, s1) < 0.01 < 0.3 < rendering.distortion(fog, s0, s1)
+    # two halves of the weight 0.5 apart: 2 * 0.5 * 0.5 * 0.5 between them, and tiny within
+    split = torch.zeros(1, 64)
+    split[0, 8], split[0, 40] = 0.5, 0.5
+    np.testing.assert_allclose(rendering.distortion(split, s0, s1), 0.25 + 0.5 / 64 / 3.0, rtol=1e-5)
+
+
+def test_distortion_is_finite_for_empty_rays_and_huge_densities():
+    s = torch.linspace(0, 1, 9)[None].expand(3, -1)
+    sigma = torch.tensor([[0.0] * 8, [1e30] * 8, [1e-30] * 8])
+    w = rendering.render_weights(sigma, s[:, 1:] - s[:, :-1])
+    loss = rendering.distortion(w, s[:, :-1], s[:, 1:])
+    assert torch.isfinite(loss).all() and loss[0] == 0.0
+    empty = rendering.distortion(torch.zeros(2, 0), torch.zeros(2, 0), torch.zeros(2, 0))
+    assert empty.tolist() == [0.0, 0.0]

@@ -106,6 +106,45 @@ class DenseGrid(nn.Module):
         return interpolated_gather(self.table, index, _axis_weights(frac))
 
 
+class MultiResolutionDenseGrid(nn.Module):
+    """Dense grids at `levels` resolutions, each twice as coarse as the next (the finest is
+    `resolution`): Instant-NGP's multi-resolution idea without the hash. The coarse levels are
+    seen by many rays and learn the shape quickly; the fine ones add detail on top, so a fine
+    grid no longer has to be fit cell by cell from the few rays that cross each cell.
+
+    `combine` = "concat" (features of all levels, coarse first: M x levels*F) or "sum" (one
+    F-vector, the sum over levels: the density grid's log-density is a coarse term plus corrections).
+    """
+
+    def __init__(self, resolution, features: int = 8, levels: int = 3, combine: str = "concat"):
+        super().__init__()
+        if combine not in ("concat", "sum"):
+            raise ValueError(f"combine must be 'concat' or 'sum', got {combine!r}")
+        self.resolution = tuple(int(r) for r in resolution)
+        self.features, self.levels, self.combine = int(features), int(levels), combine
+        self.grids = nn.ModuleList(
+            DenseGrid(level_resolution(self.resolution, self.levels - 1 - level), self.features)
+            for level in range(self.levels)
+        )
+
+    @property
+    def output_dim(self) -> int:
+        return self.features * (self.levels if self.combine == "concat" else 1)
+
+    def config(self) -> dict:
+        return {"type": "dense", "resolution": list(self.resolution), "features": self.features,
+                "levels": self.levels, "combine": self.combine}
+
+    def forward(self, u: torch.Tensor) -> torch.Tensor:
+        values = [grid(u) for grid in self.grids]
+        return torch.cat(values, dim=-1) if self.combine == "concat" else torch.stack(values).sum(0)
+
+
+def level_resolution(resolution, halvings: int) -> tuple[int, int, int]:
+    """Grid points per axis of a grid with cells 2^halvings times as wide over the same box."""
+    return tuple(max(int(math.ceil((int(r) - 1) / 2**halvings)) + 1, 2) for r in resolution)
+
+
 class HashGrid(nn.Module):
     """Multi-resolution hash encoding (Mueller et al. 2022), all levels in one vectorised pass.
 
@@ -228,6 +267,9 @@ def build_encoding(config: dict, device="cpu") -> nn.Module:
     kind = config.pop("type")
     prefer_tcnn = config.pop("prefer_tcnn", True)
     if kind == "dense":
+        if int(config.get("levels", 1)) > 1:
+            return MultiResolutionDenseGrid(config["resolution"], config.get("features", 8),
+                                            int(config["levels"]), config.get("combine", "concat"))
         return DenseGrid(tuple(config["resolution"]), config.get("features", 16))
     if kind == "hash":
         if prefer_tcnn and tcnn_available(device):

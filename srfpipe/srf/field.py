@@ -133,11 +133,14 @@ class SemanticField(nn.Module):
         self.density_bias = float(c.get("density_bias", -1.0))
         self.density_grid = bool(c.get("density_grid", False))
         if self.density_grid:
-            self.inner_sigma = build_encoding(dict(c["inner"], features=1), device)
-            self.outer_sigma = build_encoding(dict(c["outer"], features=1), device) if c.get("outer") else None
+            # one channel; levels of a multi-resolution grid add up to one log-density
+            self.inner_sigma = build_encoding(dict(c["inner"], features=1, combine="sum"), device)
+            self.outer_sigma = (build_encoding(dict(c["outer"], features=1, combine="sum"), device)
+                                if c.get("outer") else None)
             for grid in (self.inner_sigma, self.outer_sigma):
                 if grid is not None:
-                    nn.init.zeros_(grid.table)
+                    for table in grid.parameters():
+                        nn.init.zeros_(table)
             geo = self.inner.output_dim
             self.density_mlp = None
         else:

@@ -64,6 +64,15 @@ def total_variation(table: torch.Tensor, resolution) -> torch.Tensor:
     return dx + dy + dz
 
 
+def grid_total_variation(encoding) -> torch.Tensor:
+    """`total_variation` summed over the dense grids of an encoding (every level of a
+    multi-resolution grid)."""
+    from srfpipe.srf.encodings import DenseGrid
+
+    grids = [m for m in encoding.modules() if isinstance(m, DenseGrid)]
+    return sum(total_variation(g.table, g.resolution) for g in grids)
+
+
 def psnr_from_mse(mse: float) -> float:
     """PSNR in dB of images in [0, 1] (per-channel MSE)."""
     import math

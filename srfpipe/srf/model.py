@@ -58,9 +58,14 @@ def build_model_config(options: dict, bounds_world, scene_from_world, classes: l
     contraction = bool(options.get("contraction", True))
     features = int(options.get("features", 16))
     if encoding == "dense":
+        levels = int(options.get("grid_levels", 1))
         inner = {"type": "dense", "resolution": resolution, "features": features}
         g = int(options.get("outer_resolution", 48))
         outer = {"type": "dense", "resolution": [g, g, g], "features": features} if contraction else None
+        if levels > 1:
+            inner["levels"] = levels
+            if outer:
+                outer["levels"] = levels
     elif encoding == "hash":
         finest = max(resolution) * (2 if contraction else 1)
         inner = {"type": "hash", "levels": int(options.get("hash_levels", 16)),
@@ -174,7 +179,13 @@ class SRFModel(nn.Module):
             "samples": int(rays.numel()),
             "shaded": int(shade_rays.numel()),
         }
-        if not self.training:
+        if self.training:
+            # distances normalized as s = t / (t + D), D the box's largest side: linear near the
+            # box, bounded in the contracted shell, so far samples cannot dominate the loss
+            d = float(max(b - a for a, b in zip(self.config["box_min"], self.config["box_max"])))
+            out["distortion"] = rendering.distortion(
+                weights, samples.t_start / (samples.t_start + d), samples.t_end / (samples.t_end + d)).mean()
+        else:
             tolerance = FLOATER_CELLS * self.config["detail_scene"] + samples.delta
             out["significant"], out["floaters"] = rendering.floater_counts(
                 weights, samples.t_mid, tolerance, FLOATER_WEIGHT)

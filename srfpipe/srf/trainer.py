@@ -16,10 +16,12 @@ on the machine's speed, so the resume guarantee holds only for runs that finish 
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import logging
 import math
+import shutil
 import time
 from pathlib import Path
 
@@ -134,8 +136,12 @@ def save_checkpoint(folder: Path, state: dict, keep: int = 2) -> None:
     try:
         torch.save(state, tmp)
         tmp.replace(path)
-    except BaseException:  # a full disk: no half-written checkpoint left behind
+    except BaseException as exc:  # a full disk: no half-written checkpoint left behind
         tmp.unlink(missing_ok=True)
+        if isinstance(exc, (OSError, RuntimeError)):  # torch reports a full disk as an iostream error
+            free = shutil.disk_usage(folder).free
+            raise OSError(getattr(exc, "errno", None) or errno.EIO,
+                          f"cannot write the checkpoint ({exc}; {free} bytes free on its disk)", str(path)) from exc
         raise
     for old in sorted(folder.glob("step-*.pt"))[:-keep]:
         old.unlink(missing_ok=True)
@@ -316,6 +322,7 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
     batch = int(options["rays_per_batch"])
     lambda_sem = float(options.get("lambda_sem", 1.0))
     tv_density = float(options.get("tv_density", 0.0))
+    distortion_weight = float(options.get("distortion", 0.0))
     tv_features = float(options.get("tv_features", 0.0))
 
     torch.manual_seed(seed)
@@ -385,12 +392,12 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
             with autocast:
                 outputs = model(origins, directions, image, jitter)
             parts = losses.total_loss(outputs["rgb"], rgb, outputs["logits"], labels_batch, lambda_sem)
+            if distortion_weight:
+                parts["loss"] = parts["loss"] + distortion_weight * outputs["distortion"]
             if tv_density and model.field.density_grid:
-                grid = model.field.inner_sigma
-                parts["loss"] = parts["loss"] + tv_density * losses.total_variation(grid.table, grid.resolution)
+                parts["loss"] = parts["loss"] + tv_density * losses.grid_total_variation(model.field.inner_sigma)
             if tv_features and model.field.density_grid:
-                grid = model.field.inner
-                parts["loss"] = parts["loss"] + tv_features * losses.total_variation(grid.table, grid.resolution)
+                parts["loss"] = parts["loss"] + tv_features * losses.grid_total_variation(model.field.inner)
             optimizer.zero_grad(set_to_none=True)
             if scaler_needed:
                 scaler.scale(parts["loss"]).backward()
