@@ -4,11 +4,13 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-# open3d's shared library links libusb-1.0 (and OpenMP); they are not pip packages.
-if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0.so.0 || ! ldconfig -p 2>/dev/null | grep -q libgomp.so.1; then
+# open3d's shared library links libusb-1.0 (and OpenMP); MuJoCo's headless renderer (the simulator's
+# third-person view) needs EGL with Mesa's software driver. None of them is a pip package.
+if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0.so.0 || ! ldconfig -p 2>/dev/null | grep -q libgomp.so.1 \
+   || ! ldconfig -p 2>/dev/null | grep -q libEGL_mesa.so.0; then
   SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
   $SUDO apt-get update -qq
-  $SUDO apt-get install -y -qq libusb-1.0-0 libgomp1
+  $SUDO apt-get install -y -qq libusb-1.0-0 libgomp1 libegl1 libegl-mesa0 libgl1-mesa-dri
 fi
 
 PYTHON=${PYTHON:-python3.11}

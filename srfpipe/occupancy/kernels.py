@@ -285,6 +285,7 @@ def raycast(origins, directions, max_t, levels, offsets, shapes, leaf_class, ori
             t = max(t_exit, t + nudge)
     return bad
 
+
 # The same kernel on one thread: the simulator asks for a hundred points per step, where waking
 # the parallel threads costs more than the work (and a busy machine makes it much worse).
 distance_gradient_serial = njit(cache=True, nogil=True, fastmath=False)(distance_gradient.py_func)

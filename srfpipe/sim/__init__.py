@@ -11,6 +11,12 @@
 
 from __future__ import annotations
 
+import os
+
+# MuJoCo picks its OpenGL back end when it is first imported: headless EGL unless the user chose
+# (Debian packages libegl1, libegl-mesa0, libgl1-mesa-dri; MUJOCO_GL=osmesa needs libosmesa6).
+os.environ.setdefault("MUJOCO_GL", "egl")
+
 
 def _register() -> None:
     try:

@@ -5,7 +5,8 @@
     # or, without the import: gym.make("srfpipe.sim:srfpipe/AppleReach-v0", package=...)
 
 * Observation (Dict): `rgb` (H, W, 3) uint8 and `semantic` (H, W, C) uint8 (round(255 p) per class)
-  rendered by the SRF from the wrist camera; `joints` (2 n,) float32: joint angles and velocities.
+  rendered by the SRF from the wrist camera; `joints` (2 n,) float32: joint angles (within their
+  ranges) and velocities (clipped to +-20 rad/s).
 * Action: (n,) in [-1, 1], a change of each joint's servo target of at most `max_delta` radians.
 * Reward: -distance(tool tip, target's surface) / reach every step, +`success_bonus` on success,
   -`collision_penalty` on contact. It rises as the tip approaches the target.
@@ -33,6 +34,7 @@ from srfpipe.sim.runtime import Simulator
 
 ENV_ID = "srfpipe/AppleReach-v0"
 MAX_EPISODE_STEPS = 150
+MAX_JOINT_SPEED = 20.0  # rad/s: the joints observation is clipped to it (the servos stay far below)
 
 
 class AppleReachEnv(gym.Env):
@@ -62,7 +64,9 @@ class AppleReachEnv(gym.Env):
         self.observation_space = spaces.Dict({
             "rgb": spaces.Box(0, 255, (wrist_size, wrist_size, 3), np.uint8),
             "semantic": spaces.Box(0, 255, (wrist_size, wrist_size, c), np.uint8),
-            "joints": spaces.Box(-np.inf, np.inf, (2 * n,), np.float32),
+            "joints": spaces.Box(np.concatenate([self.sim.ctrl_range[:, 0], np.full(n, -MAX_JOINT_SPEED)]).astype(np.float32),
+                                 np.concatenate([self.sim.ctrl_range[:, 1], np.full(n, MAX_JOINT_SPEED)]).astype(np.float32),
+                                 (2 * n,), np.float32),
         })
         self.action_space = spaces.Box(-1.0, 1.0, (n,), np.float32)
         self.target = self.pool[0]
@@ -91,7 +95,8 @@ class AppleReachEnv(gym.Env):
         return {
             "rgb": np.clip(np.round(view["rgb"] * 255), 0, 255).astype(np.uint8),
             "semantic": np.clip(np.round(sem * 255), 0, 255).astype(np.uint8).reshape(self.observation_space["semantic"].shape),
-            "joints": np.concatenate([self.sim.qpos, self.sim.qvel]).astype(np.float32),
+            "joints": np.concatenate([np.clip(self.sim.qpos, self.sim.ctrl_range[:, 0], self.sim.ctrl_range[:, 1]),
+                                      np.clip(self.sim.qvel, -MAX_JOINT_SPEED, MAX_JOINT_SPEED)]).astype(np.float32),
         }
 
     def _info(self, contact, distance: float, success: bool) -> dict:
@@ -135,29 +140,16 @@ class AppleReachEnv(gym.Env):
         return self.third_person()
 
     def third_person(self) -> np.ndarray:
-        import mujoco
-
-        from srfpipe.sim.runtime import default_gl_backend
+        """The arm and its target from the side of the approach, a little above."""
+        from srfpipe.sim.runtime import ThirdPersonCamera
 
         if self._renderer is None:
-            default_gl_backend()
-            h, w = self.view_size
-            self._renderer = mujoco.Renderer(self.sim.model, h, w)
-            self._camera = mujoco.MjvCamera()
-            self._options = mujoco.MjvOption()
-            self._options.geomgroup[3] = 1  # target sites
-        station = self.sim.station or {}
-        tip = self.sim.tip()
+            self._renderer = ThirdPersonCamera(self.sim, *self.view_size)
         target = np.asarray(self.target_info["centroid_sim"])
-        base = np.asarray(station.get("base", tip))
-        self._camera.lookat[:] = 0.5 * (tip + target) if station else target
-        self._camera.distance = 1.6 * self.reach
-        # from the side of the approach, a little above
+        base = np.asarray((self.sim.station or {}).get("base", target))
         approach = target - base
-        self._camera.azimuth = float(np.degrees(np.arctan2(approach[1], approach[0]))) + 70.0
-        self._camera.elevation = -20.0
-        self._renderer.update_scene(self.sim.data, camera=self._camera, scene_option=self._options)
-        return self._renderer.render().copy()
+        azimuth = float(np.degrees(np.arctan2(approach[1], approach[0]))) + 70.0
+        return self._renderer.render(0.5 * (self.sim.tip() + target), 1.6 * self.reach, azimuth)
 
     def close(self):
         if self._renderer is not None:

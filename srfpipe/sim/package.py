@@ -262,8 +262,10 @@ def scene_mjcf(arm, meshes: dict[str, str], mesh_colours: dict[str, list], targe
   <!-- written by srfpipe package; the sim frame is the world frame scaled to metres (see scene.json) -->
   <compiler angle="radian" meshdir="."/>
   <option timestep="{timestep:.6g}" gravity="0 0 -9.81" integrator="implicitfast"/>
-  <visual><global offwidth="640" offheight="480"/><quality shadowsize="1024"/></visual>
+  <visual><global offwidth="640" offheight="480"/><quality shadowsize="1024"/>
+    <headlight ambient="0.35 0.35 0.35" diffuse="0.5 0.5 0.5"/></visual>
   <asset>
+    <texture name="sky" type="skybox" builtin="gradient" rgb1="0.62 0.76 0.95" rgb2="0.95 0.95 0.95" width="64" height="64"/>
     {assets}
   </asset>
   <worldbody>

@@ -37,7 +37,8 @@ MUJOCO_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 def default_gl_backend() -> str:
-    """Headless MuJoCo rendering: EGL (Debian libegl1 + libegl-mesa0 + libgl1-mesa-dri) unless set."""
+    """Headless MuJoCo rendering: EGL (Debian libegl1 + libegl-mesa0 + libgl1-mesa-dri) unless set.
+    It takes effect only before mujoco is first imported: srfpipe.sim's __init__ sets it."""
     os.environ.setdefault("MUJOCO_GL", "egl")
     return os.environ["MUJOCO_GL"]
 
@@ -298,3 +299,29 @@ class Simulator:
         body = self.model.geom_bodyid[self.link_geoms[link]]
         mujoco.mj_jac(self.model, self.data, jacp, None, np.asarray(point, dtype=np.float64), body)
         return jacp[:, self.dof_adr]
+
+
+class ThirdPersonCamera:
+    """MuJoCo's offscreen renderer (headless: EGL by default, see `default_gl_backend`) on a free
+    camera looking at a point from a distance; the target sites are drawn (geom group 3)."""
+
+    def __init__(self, sim: Simulator, height: int = 240, width: int = 320):
+        import mujoco
+
+        default_gl_backend()
+        self.sim = sim
+        self.renderer = mujoco.Renderer(sim.model, height, width)
+        self.camera = mujoco.MjvCamera()
+        self.options = mujoco.MjvOption()
+        self.options.geomgroup[3] = 1
+
+    def render(self, lookat, distance: float, azimuth_deg: float, elevation_deg: float = -20.0) -> np.ndarray:
+        self.camera.lookat[:] = np.asarray(lookat, dtype=np.float64)
+        self.camera.distance = float(distance)
+        self.camera.azimuth = float(azimuth_deg)
+        self.camera.elevation = float(elevation_deg)
+        self.renderer.update_scene(self.sim.data, camera=self.camera, scene_option=self.options)
+        return self.renderer.render().copy()
+
+    def close(self) -> None:
+        self.renderer.close()
