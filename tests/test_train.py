@@ -230,3 +230,35 @@ def test_progress_bar_counts_seconds_of_a_time_budget():
     steps.advance(6, 1.0)
     assert steps.bar.total == 100 and steps.bar.n == 6
     steps.close()
+
+
+def camera_ring_data(focal: float, distance: float = 3.0, n: int = 8):
+    """What `resolve_data_defaults` reads of a capture: a box of side 2 seen by n cameras at
+    `distance` from its centre with focal length `focal` pixels."""
+    from types import SimpleNamespace
+
+    from srfpipe.cameras import scene_from_world_transform
+
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    angles = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    poses[:, :3, 3] = np.stack([distance * np.cos(angles), distance * np.sin(angles), np.zeros(n)], 1)
+    bounds = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    return SimpleNamespace(bounds_world=bounds, scene_from_world=scene_from_world_transform(*bounds),
+                           poses_scene=torch.as_tensor(poses, dtype=torch.float32),
+                           intrinsics=torch.tensor([[focal, focal, 64.0, 64.0]] * n),
+                           bounds_source="config", gt_label=None)
+
+
+@pytest.mark.parametrize("focal, cells, levels", [(100.0, 96, 1), (300.0, 192, 3), (3000.0, 192, 3)])
+def test_grid_follows_the_pixels_a_cell_covers(focal, cells, levels):
+    """96 cells over a 2-unit box seen from 3 units: a cell spans focal/144 px. Coarse images
+    keep one 96-cell grid; sharp ones get three levels whose finest approaches a pixel (<= 192)."""
+    from srfpipe.srf.trainer import pixels_per_cell, resolve_data_defaults
+
+    data = camera_ring_data(focal)
+    assert pixels_per_cell(data, 96) == pytest.approx(focal / 144.0, rel=1e-3)
+    options = resolve_data_defaults(section_defaults("train"), data)
+    assert (options["default_cells"], options["grid_levels"]) == (cells, levels)
+    assert options["features"] == (16 if levels == 1 else 8)
+    chosen = resolve_data_defaults(dict(section_defaults("train"), default_cells=64), data)
+    assert (chosen["default_cells"], chosen["grid_levels"]) == (64, 1)  # the scene's own grid stays

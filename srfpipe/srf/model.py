@@ -48,7 +48,7 @@ def build_model_config(options: dict, bounds_world, scene_from_world, classes: l
     extent = box_max - box_min
     detail_world = options.get("detail_size")
     if detail_world is None:  # no unit known: a fixed fraction of the scene's largest extent
-        detail_scene = float(extent.max()) / float(options.get("default_cells", 96))
+        detail_scene = float(extent.max()) / float(options.get("default_cells") or 96)
     else:
         detail_scene = float(detail_world) * scale
     cap = int(options.get("max_resolution", 256))
@@ -56,9 +56,9 @@ def build_model_config(options: dict, bounds_world, scene_from_world, classes: l
     encoding = options.get("encoding", "auto")
     encoding = default_encoding(device) if encoding == "auto" else encoding
     contraction = bool(options.get("contraction", True))
-    features = int(options.get("features", 16))
+    features = int(options.get("features") or (8 if int(options.get("grid_levels") or 1) > 1 else 16))
     if encoding == "dense":
-        levels = int(options.get("grid_levels", 1))
+        levels = int(options.get("grid_levels") or 1)
         inner = {"type": "dense", "resolution": resolution, "features": features}
         g = int(options.get("outer_resolution", 48))
         outer = {"type": "dense", "resolution": [g, g, g], "features": features} if contraction else None
