@@ -202,12 +202,12 @@ def test_zero_classes_train_colour_only_and_real_captures_get_appearance(tmp_pat
 
 
 def test_appearance_is_on_by_default_for_real_captures_only():
-    from types import SimpleNamespace
-
     from srfpipe.srf.trainer import resolve_data_defaults
 
-    real = SimpleNamespace(gt_label=None, bounds_source="points")
-    generated = SimpleNamespace(gt_label=np.zeros((1, 2, 2)), bounds_source="ground_truth")
+    real = camera_ring_data(100.0)
+    real.bounds_source = "points"
+    generated = camera_ring_data(100.0)
+    generated.gt_label, generated.bounds_source = np.zeros((1, 2, 2)), "ground_truth"
     assert resolve_data_defaults({"appearance_dim": None}, real)["appearance_dim"] == 8
     assert resolve_data_defaults({"appearance_dim": None}, generated)["appearance_dim"] == 0
     assert resolve_data_defaults({"appearance_dim": 4}, real)["appearance_dim"] == 4
