@@ -42,7 +42,8 @@ class AppleReachEnv(gym.Env):
 
     def __init__(self, package, render_mode: str | None = None, wrist_size: int = 64, max_delta: float = 0.06,
                  success_margin: float | None = None, success_bonus: float = 10.0, collision_penalty: float = 10.0,
-                 reachable_only: bool = True, device: str = "cpu", view_size: tuple[int, int] = (240, 320)):
+                 reachable_only: bool = True, device: str = "cpu", view_size: tuple[int, int] = (240, 320),
+                 observe_wrist: bool = True):
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
         self.sim = Simulator(package, device=device, wrist_size=(wrist_size, wrist_size))
@@ -54,6 +55,7 @@ class AppleReachEnv(gym.Env):
             raise ValueError(f"{package}: no reachable target (see targets.json stations)")
         self.pool = list(pool)
         self.render_mode = render_mode
+        self.observe_wrist = bool(observe_wrist)  # False: no wrist render, rgb/semantic zeros (privileged policies)
         self.view_size = view_size
         self.max_delta = float(max_delta)
         self.success_margin = float(task["success_margin"] if success_margin is None else success_margin)
@@ -89,15 +91,22 @@ class AppleReachEnv(gym.Env):
         return -distance / self.reach + self.success_bonus * success - self.collision_penalty * collision
 
     def _observation(self) -> dict:
+        if not self.observe_wrist:
+            space = self.observation_space
+            return {"rgb": np.zeros(space["rgb"].shape, np.uint8), "semantic": np.zeros(space["semantic"].shape, np.uint8),
+                    "joints": self._joints()}
         view = self.sim.render_wrist()
         self._last_view = view
         sem = view["semantic"]
         return {
             "rgb": np.clip(np.round(view["rgb"] * 255), 0, 255).astype(np.uint8),
             "semantic": np.clip(np.round(sem * 255), 0, 255).astype(np.uint8).reshape(self.observation_space["semantic"].shape),
-            "joints": np.concatenate([np.clip(self.sim.qpos, self.sim.ctrl_range[:, 0], self.sim.ctrl_range[:, 1]),
-                                      np.clip(self.sim.qvel, -MAX_JOINT_SPEED, MAX_JOINT_SPEED)]).astype(np.float32),
+            "joints": self._joints(),
         }
+
+    def _joints(self) -> np.ndarray:
+        return np.concatenate([np.clip(self.sim.qpos, self.sim.ctrl_range[:, 0], self.sim.ctrl_range[:, 1]),
+                               np.clip(self.sim.qvel, -MAX_JOINT_SPEED, MAX_JOINT_SPEED)]).astype(np.float32)
 
     def _info(self, contact, distance: float, success: bool) -> dict:
         return {
