@@ -140,3 +140,23 @@ def test_multi_resolution_model_renders_and_learns_a_coarse_shape_through_its_co
     touched = [int((g.table.grad.abs().sum(-1) > 0).sum()) for g in model.field.inner_sigma.grids]
     cells = [math.prod(g.resolution) for g in model.field.inner_sigma.grids]
     assert touched[0] / cells[0] > touched[-1] / cells[-1]
+
+
+def test_novel_view_borrows_the_appearance_of_the_nearest_training_image():
+    options = dict(section_defaults("train"), default_cells=8, outer_resolution=4, hidden=8, appearance_dim=4)
+    config = build_model_config(options, [[-1, -1, -1], [1, 1, 1]], np.eye(4), [], num_images=3)
+    model = SRFModel(config)
+    assert model.field.nearest_training_view(torch.zeros(3), torch.tensor([0.0, 0.0, 1.0])) is None
+    poses = torch.eye(4).repeat(3, 1, 1)
+    poses[:, :3, 3] = torch.tensor([[0.0, 0.0, -3.0], [3.0, 0.0, 0.0], [0.0, 0.0, -3.1]])
+    poses[1, :3, :3] = torch.tensor([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])  # +z -> -x
+    model.field.record_training_cameras(poses, [1, 2])  # view 0 is held out
+    assert model.field.nearest_training_view(torch.tensor([0.0, 0.0, -3.0]), torch.tensor([0.0, 0.0, 1.0])) == 2
+    assert model.field.nearest_training_view(torch.tensor([2.9, 0.1, 0.0]), torch.tensor([-1.0, 0.0, 0.0])) == 1
+    with torch.no_grad():
+        model.field.appearance.weight[1] = 5.0
+    origins = torch.tensor([[2.9, 0.1, 0.0]]).repeat(4, 1)
+    directions = torch.tensor([[-1.0, 0.0, 0.0]]).repeat(4, 1)
+    rendered = model.eval().render_rays_chunked(origins, directions)["rgb"]
+    expected = model(origins, directions, torch.ones(4, dtype=torch.long))["rgb"]
+    np.testing.assert_allclose(rendered.numpy(), expected.detach().numpy(), rtol=1e-6)

@@ -154,6 +154,11 @@ class SemanticField(nn.Module):
         )
         if self.appearance is not None:
             nn.init.zeros_(self.appearance.weight)
+            # where each training image was taken (scene frame): a novel view borrows the
+            # appearance of the nearest one; NaN for images the field never trained on
+            num_images = int(c["num_images"])
+            self.register_buffer("camera_centres", torch.full((num_images, 3), float("nan")))
+            self.register_buffer("camera_axes", torch.full((num_images, 3), float("nan")))
         self.color_mlp = mlp(geo + self.sh_degree**2 + appearance_dim, hidden, 3,
                              layers=int(c.get("color_layers", 2)))
         self.num_classes = int(c["num_classes"])
@@ -232,7 +237,7 @@ class SemanticField(nn.Module):
         geo = h.shape[1]
         per_ray = [spherical_harmonics(directions, self.sh_degree)]
         if self.appearance is not None:
-            if image_index is None:  # a novel view: the mean appearance of the training images
+            if image_index is None:  # no view known: the mean appearance of the training images
                 emb = self.appearance.weight.mean(dim=0, keepdim=True).expand(directions.shape[0], -1)
             else:
                 emb = self.appearance(image_index)
@@ -243,6 +248,28 @@ class SemanticField(nn.Module):
             # accumulating index_put_ behind ray_term[ray_index]
             ray_term = ray_term.index_select(0, ray_index)
         return torch.sigmoid(rest(h @ first.weight[:, :geo].T + ray_term))
+
+    def record_training_cameras(self, camera_to_scene: torch.Tensor, views) -> None:
+        """Remember the centres and viewing axes (OpenCV +z) of the training `views`."""
+        if self.appearance is None:
+            return
+        views = torch.as_tensor(views, dtype=torch.long)
+        poses = camera_to_scene[views].to(self.camera_centres)
+        self.camera_centres[views] = poses[:, :3, 3]
+        self.camera_axes[views] = poses[:, :3, 2]
+
+    def nearest_training_view(self, origin: torch.Tensor, axis: torch.Tensor) -> int | None:
+        """The training image taken nearest to a camera at `origin` looking along `axis`
+        (distance in box sizes plus 1 - cos of the angle between the axes), or None."""
+        if self.appearance is None:
+            return None
+        known = torch.isfinite(self.camera_centres).all(dim=-1)
+        if not bool(known.any()):
+            return None
+        size = float((self.box_max - self.box_min).max())
+        axis = axis / axis.norm().clamp(min=1e-12)
+        cost = (self.camera_centres - origin).norm(dim=-1) / size + (1.0 - self.camera_axes @ axis)
+        return int(torch.where(known, cost, torch.full_like(cost, float("inf"))).argmin())
 
     def semantics(self, h: torch.Tensor, x: torch.Tensor | None = None) -> torch.Tensor:
         """F_s: C independent logits (M, C) from h.detach() (and the position x when the field

