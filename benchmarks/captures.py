@@ -128,7 +128,13 @@ def main() -> int:
 
     results = args.workdir / "results"
     per_scene = {name: scene_report(results, args.workdir, name) for name in scenes}
-    report: dict = {"scenes": per_scene, "workflow_seconds": seconds,
+    previous_file = result_path("captures", args.quick)
+    measured_now = sorted(per_scene)
+    if previous_file.exists():  # a run of some scenes keeps the others' last measurement
+        previous = json.loads(previous_file.read_text()).get("scenes", {})
+        per_scene = {**{n: dict(s, measured_in_an_earlier_run=True) for n, s in previous.items()
+                        if n not in per_scene}, **per_scene}
+    report: dict = {"scenes": per_scene, "measured_now": measured_now, "workflow_seconds": seconds,
                     "machine": machine_info(quick=args.quick), "scene_configs": scenes}
     fox, plant, orchard = (per_scene.get(n, {}) for n in ("fox", "plant", "orchard"))
     report.update({
