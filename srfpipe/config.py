@@ -56,6 +56,7 @@ def validate_scene(scene: dict, source: str = "<scene>") -> dict:
         scene = {}
     if not isinstance(scene, dict):
         raise ConfigError(f"{source}: a scene file must hold a mapping, got {type(scene).__name__}")
+    apply_preset(scene)
     errors = sorted(DefaultFillingValidator(load_schema()).iter_errors(scene), key=lambda e: list(e.path))
     if errors:
         lines = []
@@ -67,6 +68,18 @@ def validate_scene(scene: dict, source: str = "<scene>") -> dict:
     if problems:
         raise ConfigError("\n".join(f"{source}: {problem}" for problem in problems))
     return scene
+
+
+def apply_preset(scene: dict) -> None:
+    """Fill in the values of the scene's `preset` (workflow/schemas/presets.yaml) for every key the
+    scene does not set itself; an unknown preset is left for the schema to report."""
+    name = scene.get("preset", "balanced")
+    if not isinstance(name, str):
+        return
+    for section, values in (load_schema("presets.yaml").get(name) or {}).items():
+        own = scene.get(section)
+        if own is None or isinstance(own, dict):
+            scene[section] = {**values, **(own or {})}
 
 
 def _suggestion(error) -> str:

@@ -97,3 +97,23 @@ def test_config_reference_is_up_to_date():
     result = subprocess.run([sys.executable, str(REPO / "scripts" / "config_docs.py"), "--check"],
                             capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
+
+
+def test_presets_fill_in_what_the_scene_does_not_set():
+    from srfpipe.config import validate_scene
+
+    balanced = validate_scene({})
+    assert balanced["preset"] == "balanced" and balanced["train"]["time_budget"] == 600
+    fast = validate_scene({"preset": "fast", "train": {"rays_per_batch": 1024}})
+    assert fast["train"]["time_budget"] == 120 and fast["train"]["rays_per_batch"] == 1024  # the scene's key wins
+    paper = validate_scene({"preset": "paper"})
+    assert (paper["train"]["iterations"], paper["train"]["rays_per_batch"], paper["train"]["lr"]) == (500000, 4096, 0.01)
+    assert paper["train"]["encoding"] == "hash" and paper["images"]["downscale"] == 4
+    assert validate_scene({"preset": "accurate"})["train"]["time_budget"] == 1800
+
+
+def test_an_unknown_preset_is_a_clear_error():
+    from srfpipe.config import ConfigError, validate_scene
+
+    with pytest.raises(ConfigError, match=r"scene.yaml: preset: 'quick' is not one of"):
+        validate_scene({"preset": "quick"}, "scene.yaml")
