@@ -1,0 +1,205 @@
+"""Speed against accuracy: the presets and the knobs that matter, each built through the workflow.
+
+Every setting is its own scene in the work directory (`<scene>-<setting>`: the scene's config plus
+the setting's overrides), built to `eval` and `occupancy.zarr` by Snakemake, one training at a time
+on the machine's cores. For each setting the report holds held-out PSNR (whole image and object
+pixels), SSIM, mIoU against ground truth, training seconds and steps, the peak memory of the
+training job (Snakemake's benchmark file), and the milliseconds to render a 64 x 64 frame
+(RGB + semantics) from the trained field.
+
+    python benchmarks/tradeoff.py            # presets and knobs on the orchard and the plant
+    python benchmarks/tradeoff.py --quick    # a 60-second budget per setting, orchard only (< 15 min)
+
+Writes benchmarks/results/tradeoff.json and tradeoff.png (quality against training time).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import csv
+import json
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from common import REPO, machine_info, result_path, rule_seconds, run_workflow, write_result, write_workdir
+
+# name -> (scene overrides). Presets first, then one knob at a time against `balanced`.
+SETTINGS = {
+    "fast": {"preset": "fast"},
+    "balanced": {"preset": "balanced"},
+    "accurate": {"preset": "accurate"},
+    "rays-1024": {"train": {"rays_per_batch": 1024}},
+    "rays-8192": {"train": {"rays_per_batch": 8192}},
+    "cells-64": {"train": {"default_cells": 64}},
+    "cells-128": {"train": {"default_cells": 128}},
+    "levels-3": {"train": {"grid_levels": 3, "default_cells": 192}},
+    "step-0.5": {"train": {"step_ratio": 0.5}},
+    "occupancy-0.001": {"train": {"occupancy_threshold": 0.001}},
+    "downscale-2": {"images": {"downscale": 2}},
+    "voxels-68": {"occupancy": {"voxels_across": 68}},
+    "voxels-272": {"occupancy": {"voxels_across": 272}},
+}
+QUICK_SETTINGS = ["fast", "balanced", "rays-1024", "cells-64", "levels-3"]
+QUICK_BUDGET = 60
+
+
+def merge(base: dict, overrides: dict) -> dict:
+    scene = copy.deepcopy(base)
+    for key, value in overrides.items():
+        if isinstance(value, dict):
+            scene[key] = {**scene.get(key, {}), **value}
+        else:
+            scene[key] = value
+    return scene
+
+
+def setting_scenes(scenes: list[str], settings: list[str], quick: bool) -> dict[str, dict]:
+    out = {}
+    for scene_name in scenes:
+        base = yaml.safe_load((REPO / "config" / "scenes" / f"{scene_name}.yaml").read_text()) or {}
+        for setting in settings:
+            scene = merge(base, SETTINGS[setting])
+            if quick:  # every setting gets the same short budget
+                scene.setdefault("train", {})["time_budget"] = QUICK_BUDGET
+            out[f"{scene_name}-{setting}"] = scene
+    return out
+
+
+def peak_memory_mb(workdir: Path, scene: str, job: str) -> float | None:
+    path = workdir / "benchmarks" / "runs" / scene / f"{job}.tsv"
+    if not path.exists():
+        return None
+    with path.open() as handle:
+        row = next(csv.DictReader(handle, delimiter="\t"))
+    try:
+        return float(row["max_rss"])
+    except (KeyError, ValueError):
+        return None
+
+
+def render_ms(srf: Path, size: int = 64, repeats: int = 5) -> float | None:
+    """Milliseconds to render a size x size frame (RGB, semantics, depth) from a training camera."""
+    import torch
+
+    from srfpipe.srf.data import load_posed_images
+    from srfpipe.srf.query import SemanticRadianceField
+    from srfpipe.cameras import transform_poses
+
+    if not srf.exists():
+        return None
+    field = SemanticRadianceField.load(srf, "cpu")
+    data = load_posed_images(srf.parent / "images.zarr")
+    pose = transform_poses(data.world_from_scene, data.poses_scene[1].numpy().astype(np.float64))
+    scale = size / max(data.width, data.height)
+    intrinsics = data.intrinsics[1].numpy() * scale
+    torch.set_num_threads(2)
+    field.render(pose, intrinsics, size, size)  # warm-up
+    started = time.perf_counter()
+    for _ in range(repeats):
+        field.render(pose, intrinsics, size, size)
+    return (time.perf_counter() - started) / repeats * 1000.0
+
+
+def setting_report(workdir: Path, name: str) -> dict:
+    from srfpipe.artifacts import read_provenance
+
+    results = workdir / "results" / name
+    report: dict = {}
+    metrics_file = results / "eval" / "metrics.json"
+    if metrics_file.exists():
+        metrics = json.loads(metrics_file.read_text())
+        for key in ("psnr", "psnr_object", "ssim", "miou_gt", "miou_gt_classes", "floater_fraction"):
+            if key in metrics:
+                report[key] = metrics[key]
+    srf = results / "srf.zarr"
+    if srf.exists():
+        info = read_provenance(srf)
+        report["train_seconds"] = info.get("train_seconds")
+        report["steps"] = info.get("iterations_done")
+        report["train_config"] = info.get("config")
+    report["train_wall_seconds"] = rule_seconds(workdir, name, "train")
+    report["train_peak_memory_mb"] = peak_memory_mb(workdir, name, "train")
+    report["render_64_ms"] = render_ms(srf)
+    report["distill_ok"] = (results / "occupancy.zarr").exists()
+    return report
+
+
+def pareto_plot(per_setting: dict, path: Path, size=(900, 420)) -> None:
+    """Quality against training seconds, one panel per metric (PSNR, mIoU), drawn with OpenCV
+    (no plotting library among the project's dependencies)."""
+    import cv2
+
+    width, height = size
+    panels = []
+    for key, label in (("psnr", "held-out PSNR (dB)"), ("miou_gt", "held-out mIoU (ground truth)")):
+        points = [(n, s["train_seconds"], s[key]) for n, s in per_setting.items()
+                  if s.get("train_seconds") is not None and s.get(key) is not None]
+        panel = np.full((height, width // 2, 3), 255, np.uint8)
+        if points:
+            xs, ys = np.array([p[1] for p in points]), np.array([p[2] for p in points])
+            x0, x1 = 0.0, float(xs.max()) * 1.1 or 1.0
+            y0, y1 = float(ys.min()) - 0.05 * (np.ptp(ys) + 1e-3), float(ys.max()) + 0.05 * (np.ptp(ys) + 1e-3)
+            left, bottom, w, h = 50, height - 40, width // 2 - 70, height - 70
+
+            def at(x, y):
+                return int(left + (x - x0) / (x1 - x0) * w), int(bottom - (y - y0) / (y1 - y0) * h)
+
+            cv2.rectangle(panel, (left, bottom - h), (left + w, bottom), (0, 0, 0), 1)
+            for name, x, y in points:
+                cv2.circle(panel, at(x, y), 4, (200, 80, 0), -1)
+                cv2.putText(panel, name, (at(x, y)[0] + 5, at(x, y)[1] - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1)
+            for value in np.linspace(y0, y1, 5):
+                cv2.putText(panel, f"{value:.2f}", (2, at(x0, value)[1] + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1)
+            for value in np.linspace(x0, x1, 5):
+                cv2.putText(panel, f"{value:.0f}", (at(value, y0)[0] - 8, bottom + 15), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1)
+        cv2.putText(panel, label, (50, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1)
+        cv2.putText(panel, "training seconds (2 CPU cores)", (width // 4 - 100, height - 8),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1)
+        panels.append(panel)
+    cv2.imwrite(str(path), np.concatenate(panels, axis=1))
+    print(f"wrote {path}")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true",
+                        help=f"{QUICK_BUDGET} s of training per setting, settings {QUICK_SETTINGS}, orchard only")
+    parser.add_argument("--scenes", nargs="+", default=None, help="scene files of config/scenes (default orchard plant)")
+    parser.add_argument("--settings", nargs="+", default=None, choices=sorted(SETTINGS))
+    parser.add_argument("--workdir", type=Path, default=REPO / "benchmarks" / "work" / "tradeoff")
+    args = parser.parse_args()
+    scenes = args.scenes or (["orchard"] if args.quick else ["orchard", "plant"])
+    settings = args.settings or (QUICK_SETTINGS if args.quick else list(SETTINGS))
+
+    configs = setting_scenes(scenes, settings, args.quick)
+    write_workdir(args.workdir, configs, "occupancy")
+    targets = [f"results/{name}/{artifact}" for name in configs for artifact in ("eval", "occupancy.zarr")]
+    try:
+        seconds = run_workflow(args.workdir, targets, log=args.workdir / "snakemake.log", extra=("--keep-going",))
+    except subprocess.CalledProcessError:
+        seconds = None
+        print(f"some jobs failed: see {args.workdir / 'snakemake.log'} and {args.workdir / 'logs'}")
+
+    per_setting = {name: setting_report(args.workdir, name) for name in configs}
+    report = {"settings": per_setting, "overrides": {s: SETTINGS[s] for s in settings}, "workflow_seconds": seconds,
+              "machine": machine_info(quick=args.quick), "scenes": scenes}
+    suffix = "_quick" if args.quick else ""
+    pareto_plot(per_setting, REPO / "benchmarks" / "results" / f"tradeoff{suffix}.png")
+    write_result(result_path("tradeoff", args.quick), report)
+
+    print(f"{'setting':28} {'psnr':>6} {'obj':>6} {'ssim':>6} {'mIoU':>6} {'train s':>8} {'steps':>6} {'64px ms':>8} {'MB':>7}")
+    for name, s in per_setting.items():
+        cells = [s.get(k) for k in ("psnr", "psnr_object", "ssim", "miou_gt", "train_seconds")]
+        text = " ".join(f"{v:6.2f}" if isinstance(v, float) else f"{'-':>6}" for v in cells)
+        print(f"{name:28} {text} {s.get('steps') or '-':>6} {s.get('render_64_ms') or float('nan'):8.1f} "
+              f"{s.get('train_peak_memory_mb') or float('nan'):7.0f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
