@@ -184,7 +184,7 @@ def test_shipped_plant_scene_to_labels(workflow):
     workflow.run("results/plant/labels.zarr")
     results = workflow.root / "results" / "plant"
     poses = read_provenance(results / "poses.zarr")
-    assert poses["source_format"] == "nerfstudio" and poses["bounds_source"] == "frusta"
+    assert poses["source_format"] == "plant" and poses["bounds_source"] == "frusta"
     images = open_artifact(results / "images.zarr", stage="downscale")
     assert images["images"].shape == (16, 48, 48, 3)
     assert read_provenance(results / "images.zarr")["ground_truth_classes"] == CLASSES

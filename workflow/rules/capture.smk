@@ -47,7 +47,7 @@ rule poses:
     output:
         directory(f"{RESULTS}/{{scene}}/poses.zarr"),
     params:
-        source=poses_source,
+        source=scene_section("source"),
         options=scene_section("poses"),
     log:
         "logs/{scene}/poses.log",

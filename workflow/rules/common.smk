@@ -72,12 +72,3 @@ def capture_dir(wildcards):
     if source["format"] in GENERATED_FORMATS:
         return f"{RESULTS}/{wildcards.scene}/capture"
     return source["path"]
-
-
-def poses_source(wildcards):
-    """The source section for the poses stage. A plant capture is a plain nerfstudio folder with
-    ground truth, and the poses stage knows no format 'plant', so it imports it as nerfstudio."""
-    source = dict(SCENES[wildcards.scene]["source"])
-    if source["format"] == "plant":
-        source["format"] = "nerfstudio"
-    return json.dumps(source, sort_keys=True)
