@@ -28,6 +28,7 @@ HALFWAY = {
     "train": ("srf.ckpt",),
     "evaluate": ("eval",),
     "distill": ("occupancy.zarr",),
+    "package": ("sim",),
 }
 
 
@@ -72,19 +73,24 @@ def stage_processes(snakemake_pid: int, stage: str) -> list[int]:
     return pids
 
 
-def is_halfway(scene_dir: Path, stage: str) -> bool:
+def is_halfway(scene_dir: Path, stage: str, min_step: int = 0) -> bool:
+    """The stage is writing its artifact; for training, a checkpoint exists and the training log
+    (logs/SCENE/train_metrics.jsonl) has reached step `min_step` (put it between checkpoints)."""
     for name in HALFWAY[stage]:
         path = scene_dir / name
         if stage == "train":
             if path.is_dir() and any(path.glob("step-*.pt")):
-                return True
+                metrics = scene_dir.parent.parent / "logs" / scene_dir.name / "train_metrics.jsonl"
+                return (last_logged_step(metrics) or 0) >= min_step
         elif path.parent.is_dir() and any(path.parent.glob(f".{path.name}.partial-*")):
             return True
     return False
 
 
-def kill_stage_halfway(root: Path, targets: list[str], scene: str, stage: str, timeout: float = 900) -> dict:
-    """Run Snakemake on `targets`; when `stage` of `scene` is halfway, SIGKILL its job's process.
+def kill_stage_halfway(root: Path, targets: list[str], scene: str, stage: str, timeout: float = 900,
+                       min_step: int = 0) -> dict:
+    """Run Snakemake on `targets`; when `stage` of `scene` is halfway, SIGKILL its job's process
+    (training: once a checkpoint exists and the log has reached step `min_step`).
 
     Returns {"killed": bool, "returncode", "stage", "seconds", "train_step" (last step logged
     before the kill, for training)}. The Snakemake process itself sees its job die and exits.
@@ -97,7 +103,7 @@ def kill_stage_halfway(root: Path, targets: list[str], scene: str, stage: str, t
     killed, train_step = False, None
     try:
         while process.poll() is None and time.monotonic() - start < timeout:
-            if is_halfway(scene_dir, stage):
+            if is_halfway(scene_dir, stage, min_step):
                 for pid in stage_processes(process.pid, stage):
                     if stage == "train":
                         train_step = last_logged_step(root / "logs" / scene / "train_metrics.jsonl")
