@@ -15,6 +15,7 @@ include: "workflow/rules/images.smk"
 include: "workflow/rules/segment.smk"
 include: "workflow/rules/train.smk"
 include: "workflow/rules/occupancy.smk"
+include: "workflow/rules/batch.smk"
 include: "workflow/rules/sim.smk"
 
 

@@ -21,5 +21,5 @@ python -m pip install -q --upgrade pip
 # The CPU wheel first: a bare `torch` requirement would pull a multi-GB CUDA build on a CPU machine.
 # On a GPU machine, install the CUDA torch of your choice first instead; the project range accepts it.
 python -c "import torch" 2>/dev/null || pip install -q torch==2.13.0
-pip install -q -e '.[test,sim]'
+pip install -q -e '.[test,sim,cluster]'
 echo "srfpipe is installed in .venv (activate it with: . .venv/bin/activate)"

@@ -24,6 +24,7 @@ STAGES = [
     ("distill", "srfpipe.occupancy", "distill the field into the occupancy cache -> occupancy.zarr"),
     ("package", "srfpipe.sim.package", "package the scene for the simulator (manifest, fruit targets, meshes, MJCF) -> sim/"),
     ("sim", "srfpipe.sim.rollout", "run apple-reaching episodes in a package and write a GIF (wrist RGB | semantic | third person)"),
+    ("summary", "srfpipe.batch", "one line per scene: done, FAILED at which stage (and why), or incomplete"),
 ]
 
 

@@ -68,7 +68,9 @@ class Workflow:
             if parts[:2] == ["job", "count"]:
                 in_table = True
                 continue
-            if in_table and len(parts) == 2 and parts[1].isdigit() and parts[0] != "total":
+            if in_table and parts[:1] == ["total"]:
+                break  # the job table ends; the rule displays that follow have "jobid: 8" lines
+            if in_table and len(parts) == 2 and parts[1].isdigit():
                 jobs[parts[0]] = int(parts[1])
         return jobs
 

@@ -47,8 +47,10 @@ ARTIFACTS = {
 }
 
 
-def get_final_output():
-    return [f"{RESULTS}/{scene}/{ARTIFACTS[config['final_artifact']]}" for scene in SCENE_NAMES]
+def get_final_output(scenes=None):
+    """The final artifact of each scene: the config's scenes by default."""
+    scenes = SCENE_NAMES if scenes is None else scenes
+    return [f"{RESULTS}/{scene}/{ARTIFACTS[config['final_artifact']]}" for scene in scenes]
 
 
 def scene_section(section):
