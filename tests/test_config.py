@@ -105,7 +105,7 @@ def test_presets_fill_in_what_the_scene_does_not_set():
     balanced = validate_scene({})
     assert balanced["preset"] == "balanced" and balanced["train"]["time_budget"] == 600
     fast = validate_scene({"preset": "fast", "train": {"rays_per_batch": 1024}})
-    assert fast["train"]["time_budget"] == 120 and fast["train"]["rays_per_batch"] == 1024  # the scene's key wins
+    assert fast["train"]["time_budget"] == 300 and fast["train"]["rays_per_batch"] == 1024  # the scene's key wins
     paper = validate_scene({"preset": "paper"})
     assert (paper["train"]["iterations"], paper["train"]["rays_per_batch"], paper["train"]["lr"]) == (500000, 4096, 0.01)
     assert paper["train"]["encoding"] == "hash" and paper["images"]["downscale"] == 4

@@ -32,6 +32,7 @@ BLOCK = 8
 # One voxel per step: on the demo orchard's package the 64 x 64 wrist views differ from half-voxel
 # steps by 54 dB PSNR, and render 1.6x faster (14.5 vs 9.1 Hz on one thread).
 STEP_VOXELS = 1.0
+PARALLEL_CHUNK_RAYS = 64
 ENV_SHAPE = (32, 64)  # latitude (z from +1 to -1) x longitude (atan2(y, x) from -pi to pi)
 
 
@@ -260,13 +261,19 @@ class BakedRenderer:
         c = self.probability.shape[3]
         rgb, sem = np.empty((n, 3)), np.empty((n, c))
         depth, acc = np.empty(n), np.empty(n)
+        arguments = (origins, dirs, self.density, self.rgb, self.probability, self.blocks, self.block, self.origin,
+                     self.grid.voxel_size, near, 1e30, self.background, self.background_probability, rgb, sem, depth,
+                     acc)
         if self.threads > 1:
             import numba
 
+            # rays through the canopy cost many times those that see the sky: small chunks keep
+            # both threads busy (numba's default splits the rays into one block per thread)
             numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
-        kernel = march if self.threads > 1 else march_serial
-        kernel(origins, dirs, self.density, self.rgb, self.probability, self.blocks, self.block, self.origin,
-              self.grid.voxel_size, near, 1e30, self.background, self.background_probability, rgb, sem, depth, acc)
+            with numba.parallel_chunksize(PARALLEL_CHUNK_RAYS):
+                march(*arguments)
+        else:
+            march_serial(*arguments)
         return {"rgb": np.clip(rgb, 0, 1).reshape(height, width, 3).astype(np.float32),
                 "semantic": np.clip(sem, 0, 1).reshape(height, width, c).astype(np.float32),
                 "depth": depth.reshape(height, width).astype(np.float32),
