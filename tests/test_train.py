@@ -101,6 +101,30 @@ def test_checkpoint_from_other_settings_is_not_resumed(scene, tmp_path):
     assert read_srf(tmp_path / "b.zarr")[1]["resumed_from_step"] == 0
 
 
+def test_snapshots_hold_the_weights_at_each_mark_and_outlive_the_run(scene, tmp_path):
+    _, images, labels = scene
+    ckpt = tmp_path / "ckpt"
+    # 1e-9 s: passed by the first step; 1e9 s: never reached
+    out = tmp_path / "srf.zarr"
+    train(images, labels, out, tiny_options(iterations=12, checkpoint_every=5, snapshot_seconds=[1e9, 1e-9]),
+          holdout_every=5, checkpoints=ckpt)
+    assert [p.name for p in ckpt.iterdir()] == ["snapshot-000000001.pt"]  # checkpoints removed, snapshot kept
+    state = torch.load(ckpt / "snapshot-000000001.pt", weights_only=True)
+    assert state["step"] == 1 and state["marks"] == [1e-9] and 0 < state["train_seconds"]
+    model, attrs = read_srf(out)
+    assert state["fingerprint"] == attrs["fingerprint"]
+    model.load_state_dict(state["model"])  # the same layout as the final weights
+    # a monitoring key: the run it belongs to keeps its identity (resumes still match)
+    assert attrs["fingerprint"] == _fingerprint_without_snapshots(images, labels, tmp_path)
+
+
+def _fingerprint_without_snapshots(images, labels, tmp_path):
+    out = tmp_path / "plain.zarr"
+    train(images, labels, out, tiny_options(iterations=12, checkpoint_every=5), holdout_every=5,
+          checkpoints=tmp_path / "plain.ckpt")
+    return read_srf(out)[1]["fingerprint"]
+
+
 def test_srf_zarr_round_trip_and_query_api(trained):
     srf = SemanticRadianceField.load(trained, device="cpu")
     assert srf.classes == ["apple", "branch", "leaf"]

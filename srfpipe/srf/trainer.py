@@ -4,7 +4,9 @@ Loss L = L_photo + lambda L_sem (paper Eq. 4-5), Adam (lr 1e-2, exponential deca
 batch of rays from the training views per step (every `evaluate.holdout_every`-th view is held
 out). Checkpoints (`step-000001000.pt`, plain tensor dicts read with weights_only=True) are
 written every `checkpoint_every` steps beside the output, and a re-run resumes from the latest
-one whose fingerprint (options, model config, inputs) matches; ray sampling draws from a
+one whose fingerprint (options, model config, inputs) matches; `snapshot_seconds` adds the model's
+weights alone (`snapshot-000000420.pt`) at the first step past each of those training seconds,
+kept after success (quality against time: benchmarks/peers.py); ray sampling draws from a
 generator seeded by (seed, step), so a resumed run ends with the same weights on the CPU
 (bit-identical with one thread; with several, some CPU kernels order their float sums
 differently from run to run, resumed or not).
@@ -103,7 +105,8 @@ def parameter_groups(model, options: dict) -> list[dict]:
 
 def fingerprint(options: dict, model_config: dict, inputs: list[dict]) -> str:
     """Identity of a training run: resume only from checkpoints with the same one."""
-    relevant = {k: v for k, v in options.items() if k not in ("checkpoint_every", "log_every", "eval_every")}
+    relevant = {k: v for k, v in options.items()
+                if k not in ("checkpoint_every", "log_every", "eval_every", "snapshot_seconds")}
     blob = json.dumps([relevant, model_config, inputs], sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
@@ -145,6 +148,21 @@ def save_checkpoint(folder: Path, state: dict, keep: int = 2) -> None:
         raise
     for old in sorted(folder.glob("step-*.pt"))[:-keep]:
         old.unlink(missing_ok=True)
+
+
+def save_snapshot(folder: Path, step: int, seconds: float, marks: list[float], model, fp: str) -> Path:
+    """The model's weights (no optimizer state) at `step`, after `seconds` of training, as
+    snapshot-XXXXXXXXX.pt: written for the `snapshot_seconds` marks the step passed. Never pruned
+    and never resumed from; the trainer's clean-up leaves them (and so the folder) in place."""
+    import torch
+
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"snapshot-{step:09d}.pt"
+    tmp = path.with_suffix(".pt.tmp")
+    torch.save({"step": step, "train_seconds": seconds, "marks": list(marks), "fingerprint": fp,
+                "model": model.state_dict()}, tmp)
+    tmp.replace(path)
+    return path
 
 
 def autocast_context(device, precision: str):
@@ -407,6 +425,8 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
     log_every = int(options.get("log_every", 25))
     eval_every = int(options.get("eval_every", 0))
     time_budget = float(options.get("time_budget", 0))
+    # marks already passed by a resumed run are not saved again
+    snapshot_marks = sorted(float(m) for m in options.get("snapshot_seconds") or [] if float(m) > train_seconds)
     lr, lr_final = float(options["lr"]), float(options.get("lr_final", options["lr"] * 0.1))
     scale = scene_scale(data.scene_from_world)
     iterations_done = iterations
@@ -455,6 +475,10 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
             train_seconds += time.perf_counter() - tick
             done = step + 1
             bar.advance(done, train_seconds)
+            if snapshot_marks and train_seconds >= snapshot_marks[0]:
+                passed = [m for m in snapshot_marks if m <= train_seconds]
+                snapshot_marks = snapshot_marks[len(passed):]
+                save_snapshot(ckpt_dir, done, train_seconds, passed, model, fp)
             if done % log_every == 0 or done == iterations:
                 photo = float(parts["photometric"].detach())
                 record = {
