@@ -44,6 +44,7 @@ SETTINGS = {
     "voxels-68": {"occupancy": {"voxels_across": 68}},
     "voxels-272": {"occupancy": {"voxels_across": 272}},
 }
+PRESETS = ("fast", "balanced", "accurate", "paper")
 QUICK_SETTINGS = ["fast", "balanced", "rays-1024", "cells-64", "levels-3"]
 QUICK_BUDGET = 60
 
@@ -186,11 +187,24 @@ def main() -> int:
         print(f"some jobs failed: see {args.workdir / 'snakemake.log'} and {args.workdir / 'logs'}")
 
     per_setting = {name: setting_report(args.workdir, name) for name in configs}
-    report = {"settings": per_setting, "overrides": {s: SETTINGS[s] for s in settings}, "workflow_seconds": seconds,
-              "machine": machine_info(quick=args.quick), "scenes": scenes}
+    overrides = {s: SETTINGS[s] for s in settings}
+    path = result_path("tradeoff", args.quick)
+    if path.exists() and (args.settings or args.scenes):
+        # a partial run (some settings or scenes) updates those entries and keeps the others
+        earlier = json.loads(path.read_text())
+        per_setting = {**earlier.get("settings", {}), **per_setting}
+        overrides = {**earlier.get("overrides", {}), **overrides}
+        scenes = sorted(set(earlier.get("scenes", [])) | set(scenes))
+    report = {"settings": per_setting, "overrides": overrides, "workflow_seconds": seconds,
+              "machine": machine_info(quick=args.quick), "scenes": scenes,
+              # each preset on the orchard: the keys
+              "presets": {name.split("-", 1)[1]: {"psnr": r.get("psnr"), "psnr_object": r.get("psnr_object"),
+                                                  "miou": r.get("miou_gt"), "train_seconds": r.get("train_seconds")}
+                          for name, r in per_setting.items()
+                          if name.startswith("orchard-") and name.split("-", 1)[1] in PRESETS}}
     suffix = "_quick" if args.quick else ""
     pareto_plot(per_setting, REPO / "benchmarks" / "results" / f"tradeoff{suffix}.png")
-    write_result(result_path("tradeoff", args.quick), report)
+    write_result(path, report)
 
     print(f"{'setting':28} {'psnr':>6} {'obj':>6} {'ssim':>6} {'mIoU':>6} {'train s':>8} {'steps':>6} {'64px ms':>8} {'MB':>7}")
     for name, s in per_setting.items():
