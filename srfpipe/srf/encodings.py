@@ -32,27 +32,35 @@ class _InterpolatedGather(torch.autograd.Function):
     `index_add_` into a channels-last (N, F) buffer: 35 ms on 2 cores for 112 k samples (0.9 M
     corner rows) into a 96^3 x 16 grid, where `embedding`'s backward pays ~100 ns per row and a
     feature-major (F, N) buffer plus the transpose of the whole grid gradient took 66 ms.
+
+    Both passes run in the table's precision whatever autocast says: the gather is memory-bound
+    (nothing to gain from bf16 on the CPU), and under bf16/fp16 autocast the interpolation would
+    round log-densities to 8 or 11 bits and the backward would add ~10^6 corner rows in half
+    precision (it failed outright: `index_add_` of float32 contributions into a bf16 buffer).
     """
 
     @staticmethod
     def forward(ctx, table, index, weights):
         m, k = index.shape
-        values = table.index_select(0, index.reshape(-1)).view(m, k, table.shape[1])
+        with torch.autocast(table.device.type, enabled=False):
+            values = table.index_select(0, index.reshape(-1)).view(m, k, table.shape[1])
+            out = torch.bmm(weights.unsqueeze(1).to(values.dtype), values).squeeze(1)
         ctx.save_for_backward(index, weights)
-        ctx.rows = table.shape[0]
-        return torch.bmm(weights.unsqueeze(1).to(values.dtype), values).squeeze(1)
+        ctx.rows, ctx.dtype = table.shape[0], table.dtype
+        return out
 
     @staticmethod
     def backward(ctx, grad_out):
         index, weights = ctx.saved_tensors
+        grad_out = grad_out.to(ctx.dtype)
         features = grad_out.shape[1]
         flat = index.reshape(-1)
         if features == 1:
-            contributions = (weights * grad_out).reshape(-1)
-            grad = torch.zeros(ctx.rows, dtype=grad_out.dtype, device=grad_out.device)
+            contributions = (weights.to(ctx.dtype) * grad_out).reshape(-1)
+            grad = torch.zeros(ctx.rows, dtype=ctx.dtype, device=grad_out.device)
             return grad.index_add_(0, flat, contributions).unsqueeze(1), None, None
-        contributions = (grad_out.unsqueeze(1) * weights.to(grad_out.dtype).unsqueeze(-1)).reshape(-1, features)
-        grad = torch.zeros(ctx.rows, features, dtype=grad_out.dtype, device=grad_out.device)
+        contributions = (grad_out.unsqueeze(1) * weights.to(ctx.dtype).unsqueeze(-1)).reshape(-1, features)
+        grad = torch.zeros(ctx.rows, features, dtype=ctx.dtype, device=grad_out.device)
         return grad.index_add_(0, flat, contributions), None, None
 
 

@@ -286,7 +286,7 @@ class SemanticField(nn.Module):
         u = self.box_coordinates(x)
         v = contract(u) * 0.5 if self.contraction else u.clamp(-1.0, 1.0)
         scales = (2.0 ** torch.arange(self.semantic_octaves, device=x.device, dtype=torch.float32)) * math.pi
-        angles = (v.unsqueeze(-1) * scales).reshape(x.shape[0], -1)
+        angles = (v.unsqueeze(-1) * scales).flatten(1)  # (M, 3 * octaves); M may be 0
         return torch.cat([torch.sin(angles), torch.cos(angles)], dim=-1)
 
     def background(self, directions: torch.Tensor) -> torch.Tensor:

@@ -6,6 +6,7 @@ config (stored in srf.zarr); `SRFModel(config)` rebuilds the same module anywher
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -21,6 +22,12 @@ from srfpipe.srf.sampling import OccupancyGrid, SamplerSettings, generate_interv
 # ray's median-weight depth, i.e. not on the surface the ray sees.
 FLOATER_WEIGHT = 0.03
 FLOATER_CELLS = 4.0
+# Samples along a ray's path through the box at most: every ray of a batch holds this many
+# candidate intervals before the occupancy grid culls them (8192 rays x 2048 = 16 M intervals in
+# an evaluation chunk). The default step (one cell) gives at most 256 * sqrt(3) = 444.
+MAX_STEPS_ACROSS_BOX = 2048
+
+log = logging.getLogger(__name__)
 
 
 def scene_scale(scene_from_world) -> float:
@@ -53,6 +60,12 @@ def build_model_config(options: dict, bounds_world, scene_from_world, classes: l
         detail_scene = float(detail_world) * scale
     cap = int(options.get("max_resolution", 256))
     resolution = [grid_resolution(float(e), detail_scene, cap) for e in extent]
+    finest = float(extent.max()) / (max(resolution) - 1)  # the cell the (capped) grid really has
+    if detail_scene < finest * (1 - 1e-9):
+        log.warning("grid cells of %.3g world units (train.detail_size or default_cells) are finer than "
+                    "max_resolution %d points can resolve over the box: cells and steps of %.3g instead",
+                    detail_scene / scale, cap, finest / scale)
+        detail_scene = finest
     encoding = options.get("encoding", "auto")
     encoding = default_encoding(device) if encoding == "auto" else encoding
     contraction = bool(options.get("contraction", True))
@@ -76,6 +89,13 @@ def build_model_config(options: dict, bounds_world, scene_from_world, classes: l
         raise ValueError(f"train.encoding must be auto, dense or hash, got {encoding!r}")
     density_grid = bool(options.get("density_grid", encoding == "dense"))
     step = detail_scene * float(options.get("step_ratio", 1.0))
+    diagonal = float(np.linalg.norm(extent))
+    if diagonal / step > MAX_STEPS_ACROSS_BOX:
+        finest_step = diagonal / MAX_STEPS_ACROSS_BOX
+        log.warning("train.step_ratio %g gives %.3g steps across the box (memory grows with it); "
+                    "step ratio %.3g instead (%d steps)", float(options.get("step_ratio", 1.0)),
+                    diagonal / step, finest_step / detail_scene, MAX_STEPS_ACROSS_BOX)
+        step = finest_step
     # initial opacity per step of the density grid: faintly foggy, so every cell gets gradients
     density_bias = math.log(float(options.get("initial_opacity") or 0.01) / step) if density_grid else -1.0
     occupancy_resolution = [max(int(math.ceil((r - 1) / 2)), 1) for r in resolution]
@@ -124,11 +144,14 @@ class SRFModel(nn.Module):
             origins, directions, self.field.box_min, self.field.box_max, self.settings, jitter
         )
         keep = t_end > t_start
+        candidates = keep.sum(dim=1)
         rays, cols = keep.nonzero(as_tuple=True)
         t_mid = 0.5 * (t_start[rays, cols] + t_end[rays, cols])
         points = origins[rays] + directions[rays] * t_mid[:, None]
         keep[rays, cols] = self.occupancy.occupied(points)
-        return pack(t_start, t_end, keep)
+        samples = pack(t_start, t_end, keep)
+        samples.candidates = candidates
+        return samples
 
     def forward(self, origins, directions, image_index=None, jitter=None) -> dict:
         """Render rays (R, 3) in the scene frame. Returns rgb (R, 3), logits (R, C), depth (R,)
@@ -189,13 +212,18 @@ class SRFModel(nn.Module):
             tolerance = FLOATER_CELLS * self.config["detail_scene"] + samples.delta
             out["significant"], out["floaters"] = rendering.floater_counts(
                 weights, samples.t_mid, tolerance, FLOATER_WEIGHT)
+            # empty space skipped: the intervals the sampler placed on each ray, and those the
+            # occupancy grid kept (the field is evaluated at these only)
+            out["candidate_samples"] = samples.candidates.float()
+            out["kept_samples"] = mask.sum(dim=-1).float()
         return out
 
     @torch.no_grad()
     def render_rays_chunked(self, origins, directions, chunk: int = 8192) -> dict:
         """Inference over many rays in chunks; returns CPU float32 tensors."""
         outputs: dict[str, list] = {"rgb": [], "logits": [], "depth": [], "accumulation": [],
-                                    "significant": [], "floaters": []}
+                                    "significant": [], "floaters": [], "candidate_samples": [],
+                                    "kept_samples": []}
         # a novel view (one camera: the rays share an origin) takes the appearance embedding of
         # the nearest training image; on the fox that beat the mean embedding by 0.55 dB
         nearest = self.field.nearest_training_view(origins.mean(dim=0), directions.mean(dim=0))
@@ -206,6 +234,6 @@ class SRFModel(nn.Module):
                                    device=origins.device)
             out = self(origins[start:start + chunk], directions[start:start + chunk], index)
             for key in outputs:
-                if key in out:  # the floater counts exist in eval mode only
+                if key in out:  # the sample counts exist in eval mode only
                     outputs[key].append(out[key].float().cpu())
         return {key: torch.cat(v) for key, v in outputs.items() if v}

@@ -32,6 +32,7 @@ class RaySamples:
     t_start: torch.Tensor
     t_end: torch.Tensor
     mask: torch.Tensor
+    candidates: torch.Tensor | None = None  # (R,) intervals per ray before occupancy culling
 
     @property
     def t_mid(self) -> torch.Tensor:
