@@ -1,8 +1,9 @@
 """Evaluate a trained SRF on its held-out views: PSNR, SSIM, per-class IoU and mIoU -> eval/.
 
 The held-out views are the ones the trainer excluded (recorded in srf.zarr; `split_views`).
-Writes `metrics.json` and one PNG per view (top: render | semantic blend | depth; bottom: the
-captured image | its reference labels | render opacity), like the paper's figure 1.
+Writes `metrics.json` (and the same as an HTML table, `metrics.html`), one PNG per view (top:
+render | semantic blend | depth; bottom: the captured image | its reference labels | render
+opacity), like the paper's figure 1, and the training curve (`training_curve.svg`) for the report.
 IoU is computed on label images: a pixel takes the most probable class whose probability
 is >= 0.5, background otherwise; `miou` averages over the trained classes and background.
 
@@ -89,18 +90,24 @@ def evaluate(images, labels, srf, out, options: dict, device="auto") -> dict:
     from srfpipe.srf.data import load_posed_images
     from srfpipe.srf.query import SemanticRadianceField
 
+    from srfpipe.srf.io import read_curve
+
     field = SemanticRadianceField.load(srf, device)
     data = load_posed_images(images, labels)
-    return evaluate_field(field, data, out, options, labels, srf)
+    curves = (read_curve(srf, "curve"), read_curve(srf, "eval_curve"))
+    return evaluate_field(field, data, out, options, labels, srf, curves)
 
 
-def evaluate_field(field, data, out, options: dict, labels, srf) -> dict:
+def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) -> dict:
     """Metrics and renders of `field` on the held-out views of `data` (`PosedImages`), into `out`.
 
     `field` needs `classes`, `attrs` (holdout_every, train_seconds), `world_from_scene` and
     `render(camera_to_world, intrinsics, width, height)` like `SemanticRadianceField`; `labels`
     and `srf` are the paths the data and the field came from (for messages and the record).
+    `curves`, srf.zarr's (curve, eval_curve), adds the training curve (`training_curve.svg`).
     """
+    from srfpipe.figures import metrics_html, training_curve_svg
+
     import cv2
 
     from srfpipe.artifacts import atomic_directory, meta, open_artifact
@@ -126,6 +133,7 @@ def evaluate_field(field, data, out, options: dict, labels, srf) -> dict:
     conf_gt = np.zeros((c + 1, c + 1), np.int64) if data.gt_label is not None else None
     per_view, sq_err, sq_err_obj, obj_pixels = [], 0.0, 0.0, 0
     significant, floaters = 0.0, 0.0  # samples with weight > 0.03, and those off the ray's surface
+    candidates, kept = 0.0, 0.0  # intervals placed along the rays, and those not skipped as empty
     with atomic_directory(out) as tmp:
         (tmp / "renders").mkdir()
         for index in heldout:
@@ -137,6 +145,9 @@ def evaluate_field(field, data, out, options: dict, labels, srf) -> dict:
             if "floater_samples" in result:
                 significant += float(result["significant_samples"].sum())
                 floaters += float(result["floater_samples"].sum())
+            if "candidate_samples" in result:
+                candidates += float(result["candidate_samples"].sum())
+                kept += float(result["kept_samples"].sum())
             view = {"name": data.names[index], "index": int(index), "psnr": metrics.psnr(result["rgb"], target),
                     "ssim": metrics.ssim(result["rgb"], target)}
             pred_label = reference = None
@@ -165,6 +176,13 @@ def evaluate_field(field, data, out, options: dict, labels, srf) -> dict:
             # off the surface each ray sees (srfpipe.srf.model.FLOATER_CELLS from its median depth)
             result["floater_fraction"] = floaters / significant
             result["significant_samples_per_ray"] = significant / (len(heldout) * data.height * data.width)
+        if candidates:
+            # empty space costs no samples: the share of the intervals placed along the held-out
+            # rays that the occupancy grid skipped (the field is never evaluated there)
+            rays = len(heldout) * data.height * data.width
+            result["samples_skipped_fraction"] = 1.0 - kept / candidates
+            result["samples_per_ray"] = kept / rays
+            result["candidate_samples_per_ray"] = candidates / rays
         if semantic:
             result["psnr_object"] = (-10 * np.log10(max(sq_err_obj / max(obj_pixels * 3, 1), 1e-12))
                                      if obj_pixels else None)
@@ -174,6 +192,9 @@ def evaluate_field(field, data, out, options: dict, labels, srf) -> dict:
         result.update({"label_source": str(labels), "srf": str(srf), "train_seconds": field.attrs.get("train_seconds"),
                        "per_view": per_view})
         (tmp / "metrics.json").write_text(json.dumps(_clean(result), indent=2))
+        (tmp / "metrics.html").write_text(metrics_html(_clean(result), title=f"held-out views of {srf}"))
+        if curves is not None and len(curves[0].get("step", [])):
+            (tmp / "training_curve.svg").write_text(training_curve_svg(*curves))
     log.info("psnr %.2f ssim %.3f%s", result["psnr"], result["ssim"],
              f" miou {result['miou']:.3f}" if semantic else " (no classes: no IoU)")
     return result

@@ -22,7 +22,7 @@ from srfpipe.config import section_defaults
 from srfpipe.srf import losses, rendering
 from srfpipe.srf.data import image_rays, load_posed_images
 from srfpipe.srf.model import MAX_STEPS_ACROSS_BOX, SRFModel, build_model_config
-from srfpipe.srf.synthetic import look_at, write_scene
+from srfpipe.srf.synthetic import look_at, write_labels, write_scene
 from srfpipe.srf.trainer import train
 
 CUBE = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -407,12 +407,7 @@ def test_class_present_in_one_frame_only_trains_and_evaluates(synthetic, tmp_pat
         others = np.arange(len(label)) != frame
         label[others] = np.where(label[others] == value, 0, label[others])
     assert (label[0] == 1).any() and (label[1] == 2).any()
-    multihot = np.stack([label == v for v in (1, 2, 3)], axis=-1).astype(np.uint8)
-    one_frame = tmp_path / "labels.zarr"
-    with create_artifact(one_frame, "composite", classes=["apple", "branch", "leaf"],
-                         names=meta(group)["names"]) as g:
-        g.create_array("label", data=label)
-        g.create_array("multihot", data=multihot)
+    one_frame = write_labels(tmp_path / "labels.zarr", label, ["apple", "branch", "leaf"], meta(group)["names"])
     out = tmp_path / "srf.zarr"
     train(images, one_frame, out, tiny_options(), holdout_every=3)
     curve = read_curve(out)

@@ -171,6 +171,13 @@ def test_evaluate_writes_metrics_and_renders(scene, trained, tmp_path):
     assert saved["views"] == 2 and 0 <= saved["miou"] <= 1 and -1 <= saved["ssim"] <= 1
     assert metrics["psnr"] == pytest.approx(saved["psnr"])
     assert sorted(p.name for p in (out / "renders").glob("*.png")) == ["frame_00000.png", "frame_00005.png"]
+    # empty space costs no samples: the occupancy grid skipped some of the intervals placed on the rays
+    assert 0 < saved["samples_skipped_fraction"] < 1
+    assert saved["samples_per_ray"] == pytest.approx((1 - saved["samples_skipped_fraction"])
+                                                     * saved["candidate_samples_per_ray"])
+    # for the report: the metrics as a table and the training curve
+    assert "PSNR (dB)" in (out / "metrics.html").read_text() and "frame_00005" in (out / "metrics.html").read_text()
+    assert (out / "training_curve.svg").read_text().count("<polyline") >= 5
     with pytest.raises(ValueError, match="holdout_every"):
         evaluate(images, labels, trained, tmp_path / "eval2", {"holdout_every": 3}, device="cpu")
 

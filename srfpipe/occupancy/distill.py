@@ -449,8 +449,10 @@ def distill(field: SemanticField, out_path: str | Path, options: dict | None = N
             "leaf_class": "class index per leaf (aligned with the last level), -1 when no class passes its threshold",
         }
 
+        storage = storage_bytes(group, [*arrays.values(), distance, *levels])
         update_attrs(
             group,
+            **storage,
             grid={**grid.to_attrs(), "unit": unit},
             resolution=resolution,
             unit=unit,
@@ -477,8 +479,21 @@ def distill(field: SemanticField, out_path: str | Path, options: dict | None = N
             field_bounds_world=np.asarray(field.bounds_world, dtype=np.float64).tolist(),
             **extra_attrs,
         )
-    log.info("occupied voxels %d (%s)", counts[0], dict(zip(classes, counts[1:].tolist())))
+    log.info("occupied voxels %d (%s); %.3g MB on disk, %.3g MB as dense arrays (%.2g %%)", counts[0],
+             dict(zip(classes, counts[1:].tolist())), storage["bytes_on_disk"] / 1e6, storage["dense_bytes"] / 1e6,
+             100 * storage["bytes_on_disk"] / max(storage["dense_bytes"], 1))
     return Path(out_path)
+
+
+def storage_bytes(group, dense_arrays) -> dict:
+    """What the cache costs on disk against a dense grid: `bytes_on_disk`, the size of every file
+    of the artifact (chunks of empty bricks are never written, the rest compressed; measured before
+    the final attributes, a few kB, are written), and `dense_bytes`, what `dense_arrays` (the
+    voxel arrays and the pyramid, not the octree) would take stored whole and uncompressed."""
+    root = Path(group.store.root)
+    on_disk = sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
+    dense = sum(math.prod(a.shape) * a.dtype.itemsize for a in dense_arrays)
+    return {"bytes_on_disk": int(on_disk), "dense_bytes": int(dense)}
 
 
 def _write_1d(group, name: str, values: np.ndarray, dtype: str) -> None:

@@ -303,4 +303,5 @@ class SemanticField(nn.Module):
 
 def grid_resolution(extent: float, detail: float, cap: int) -> int:
     """Grid points along one axis so that cells are `detail` wide (at least 2, at most `cap`)."""
-    return int(min(max(math.ceil(extent / detail) + 1, 2), cap))
+    # ceil with a tolerance: an extent of exactly 32 cells computed as 32.000000000000004 is 32 cells
+    return int(min(max(math.ceil(extent / detail - 1e-6) + 1, 2), cap))

@@ -100,6 +100,9 @@ class SemanticRadianceField:
             # per pixel: samples with weight > 0.03, and those of them off the surface (floaters)
             "significant_samples": out["significant"].numpy().reshape(height, width).astype(np.float32),
             "floater_samples": out["floaters"].numpy().reshape(height, width).astype(np.float32),
+            # per pixel: intervals the sampler placed, and those left after skipping empty space
+            "candidate_samples": out["candidate_samples"].numpy().reshape(height, width).astype(np.float32),
+            "kept_samples": out["kept_samples"].numpy().reshape(height, width).astype(np.float32),
         }
 
     def semantic(self, points_world: np.ndarray) -> np.ndarray:

@@ -107,9 +107,16 @@ def write_scene(folder, views: int = 16, width: int = 48, height: int = 36, radi
         gt = g.create_group("ground_truth")
         gt.create_array("labels", shape=labels.shape, chunks=(1, height, width), dtype=np.uint8)[...] = labels
         gt.create_array("depth", shape=labels.shape, chunks=(1, height, width), dtype=np.float32)[...] = np.stack(depths)
-    labels_path = folder / "labels.zarr"
-    multihot = np.stack([labels == v for v in (1, 2, 3)], axis=-1).astype(np.uint8)
-    with create_artifact(labels_path, "composite", inputs=[images_path], classes=CLASSES, names=names) as g:
-        g.create_array("label", shape=labels.shape, chunks=(1, height, width), dtype=np.uint8)[...] = labels
-        g.create_array("multihot", shape=multihot.shape, chunks=(1, height, width, 3), dtype=np.uint8)[...] = multihot
+    labels_path = write_labels(folder / "labels.zarr", labels, CLASSES, names, inputs=[images_path])
     return images_path, labels_path
+
+
+def write_labels(path, label: np.ndarray, classes: list[str], names: list[str], inputs=()) -> Path:
+    """labels.zarr (stage composite) from a label image (N, H, W): value v is classes[v - 1], 0 none."""
+    n, height, width = label.shape
+    multihot = (label[..., None] == np.arange(1, len(classes) + 1)).astype(np.uint8)
+    with create_artifact(path, "composite", inputs=list(inputs), classes=list(classes), names=names) as g:
+        g.create_array("label", shape=label.shape, chunks=(1, height, width), dtype=np.uint8)[...] = label
+        g.create_array("multihot", shape=multihot.shape, chunks=(1, height, width, max(len(classes), 1)),
+                       dtype=np.uint8)[...] = multihot
+    return Path(path)
