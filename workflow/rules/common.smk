@@ -48,9 +48,14 @@ ARTIFACTS = {
 
 
 def get_final_output(scenes=None):
-    """The final artifact of each scene: the config's scenes by default."""
+    """The final artifact of each scene (the config's scenes by default), and its held-out
+    evaluation when the final artifact comes after it (occupancy, sim: nothing else needs eval/, and
+    the batch summary reads a finished scene's PSNR and mIoU from it)."""
     scenes = SCENE_NAMES if scenes is None else scenes
-    return [f"{RESULTS}/{scene}/{ARTIFACTS[config['final_artifact']]}" for scene in scenes]
+    names = list(ARTIFACTS)
+    final = config["final_artifact"]
+    wanted = [final] + (["eval"] if names.index(final) > names.index("eval") else [])
+    return [f"{RESULTS}/{scene}/{ARTIFACTS[name]}" for scene in scenes for name in wanted]
 
 
 def scene_section(section):
