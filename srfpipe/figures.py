@@ -15,14 +15,19 @@ import numpy as np
 COLOURS = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b"]
 
 
-def _ticks(lo: float, hi: float, log: bool) -> list[float]:
+def _ticks(lo: float, hi: float, log: bool) -> list[tuple[float, str]]:
+    """(value, label) of the ticks: powers of ten on a log axis, else 1, 2 or 5 x 10^k apart."""
     if log:
-        return [10.0**e for e in range(math.floor(math.log10(lo)), math.ceil(math.log10(hi)) + 1)]
-    return list(np.linspace(lo, hi, 5))
-
-
-def _label(value: float) -> str:
-    return f"{value:.3g}"
+        return [(10.0**e, f"{10.0**e:g}") for e in range(math.floor(math.log10(lo)), math.ceil(math.log10(hi)) + 1)]
+    if not hi > lo:
+        return [(lo, f"{lo:.4g}")]
+    raw = (hi - lo) / 4
+    magnitude = 10.0 ** math.floor(math.log10(raw))
+    step = min((m * magnitude for m in (1, 2, 5, 10) if m * magnitude >= raw), default=10 * magnitude)
+    decimals = max(0, -math.floor(math.log10(step)))
+    first = math.ceil(lo / step - 1e-9)
+    values = [k * step for k in range(first, math.floor(hi / step + 1e-9) + 1)]
+    return [(v, f"{v:.{decimals}f}") for v in values]
 
 
 def line_chart_svg(panels: list[dict], x_label: str, width: int = 330, height: int = 240) -> str:
@@ -53,18 +58,22 @@ def line_chart_svg(panels: list[dict], x_label: str, width: int = 330, height: i
         ylo, yhi = float(all_y.min()), float(all_y.max())
         if log:
             ylo, yhi = math.floor(ylo), math.ceil(yhi)
-        xhi, yhi = (xhi if xhi > xlo else xlo + 1.0), (yhi if yhi > ylo else ylo + 1.0)
+        y_ticks = _ticks(10.0**ylo if log else ylo, 10.0**yhi if log else yhi, log)
+        x_ticks = _ticks(xlo, xhi, False)
+        # one point (or a flat line) sits in the middle of its axis
+        xlo, xhi = (xlo, xhi) if xhi > xlo else (xlo - 1.0, xhi + 1.0)
+        ylo, yhi = (ylo, yhi) if yhi > ylo else (ylo - 1.0, yhi + 1.0)
 
         def at(x, y):
             return x0 + (x - xlo) / (xhi - xlo) * w, y0 + h - (y - ylo) / (yhi - ylo) * h
 
-        for tick in _ticks(10.0**ylo if log else ylo, 10.0**yhi if log else yhi, log):
+        for tick, label in y_ticks:
             _, y = at(xlo, math.log10(tick) if log else tick)
             parts.append(f'<line x1="{x0}" x2="{x0 + w}" y1="{y:.1f}" y2="{y:.1f}" stroke="#ddd"/>')
-            parts.append(f'<text x="{x0 - 4}" y="{y + 4:.1f}" text-anchor="end">{_label(tick)}</text>')
-        for tick in _ticks(xlo, xhi, False):
+            parts.append(f'<text x="{x0 - 4}" y="{y + 4:.1f}" text-anchor="end">{label}</text>')
+        for tick, label in x_ticks:
             x, _ = at(tick, ylo)
-            parts.append(f'<text x="{x:.1f}" y="{y0 + h + 14}" text-anchor="middle">{_label(tick)}</text>')
+            parts.append(f'<text x="{x:.1f}" y="{y0 + h + 14}" text-anchor="middle">{label}</text>')
         for i, (name, (xs, ys)) in enumerate(series.items()):
             colour = COLOURS[i % len(COLOURS)]
             points = " ".join(f"{x:.1f},{y:.1f}" for x, y in (at(a, b) for a, b in zip(xs, ys)))
@@ -72,8 +81,8 @@ def line_chart_svg(panels: list[dict], x_label: str, width: int = 330, height: i
             if len(xs) == 1:
                 x, y = at(xs[0], ys[0])
                 parts.append(f'<circle cx="{x:.1f}" cy="{y:.1f}" r="3" fill="{colour}"/>')
-            parts.append(f'<text x="{x0 + w - 4}" y="{y0 + 14 + 13 * i}" text-anchor="end" fill="{colour}">'
-                         f'{html.escape(name)}</text>')
+            parts.append(f'<text x="{x0 + w - 4}" y="{y0 + 14 + 13 * i}" text-anchor="end" fill="{colour}" '
+                         f'stroke="white" stroke-width="3" paint-order="stroke">{html.escape(name)}</text>')
     parts.append("</svg>")
     return "\n".join(parts)
 

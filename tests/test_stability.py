@@ -128,11 +128,12 @@ def test_fields_trained_at_any_scale_render_the_same_after_normalization(fields_
         scaled_pose = pose.copy()
         scaled_pose[:3, 3] *= scale
         got = field.render(scaled_pose, intrinsics, 24, 16)
+        # measured: equal to the last bit but for depth (1.2e-7 relative); slack for other machines
         for key in ("rgb", "semantic", "accumulation"):
-            np.testing.assert_allclose(got[key], expected[key], atol=2e-3, err_msg=key)
-        np.testing.assert_allclose(got["depth"] / scale, expected["depth"], rtol=2e-3, atol=2e-3)
-        np.testing.assert_allclose(field.density(points * scale) * scale, density, rtol=2e-3, atol=1e-3)
-        np.testing.assert_allclose(field.semantic(points * scale), reference.semantic(points), atol=2e-3)
+            np.testing.assert_allclose(got[key], expected[key], atol=1e-4, err_msg=key)
+        np.testing.assert_allclose(got["depth"] / scale, expected["depth"], rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(field.density(points * scale) * scale, density, rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(field.semantic(points * scale), reference.semantic(points), atol=1e-4)
 
 
 @pytest.mark.parametrize("scale", [0.01, 100.0])
@@ -254,7 +255,7 @@ def test_model_and_loss_under_cpu_autocast_match_fp32(encoding, dtype):
         parts = losses.total_loss(out["rgb"], target, out["logits"], labels)
     parts["loss"].backward()
     assert out["rgb"].dtype == torch.float32 and parts["loss"].dtype == torch.float32
-    tolerance = 3e-2 if dtype == torch.bfloat16 else 5e-3
+    tolerance = 1e-2 if dtype == torch.bfloat16 else 2e-3  # measured: 2e-3 and 2.4e-4
     torch.testing.assert_close(out["rgb"], expected["rgb"], atol=tolerance, rtol=0)
     torch.testing.assert_close(out["depth"], expected["depth"], atol=tolerance * 4, rtol=0)
     assert torch.isfinite(parts["loss"]) and assert_finite_gradients(model) > 0

@@ -44,7 +44,13 @@ rule evaluate:
         labels=rules.composite.output[0],
         srf=rules.train.output[0],
     output:
-        directory(f"{RESULTS}/{{scene}}/eval"),
+        report(
+            directory(f"{RESULTS}/{{scene}}/eval"),
+            patterns=["renders/{view}.png", "{table}.html", "{figure}.svg"],
+            caption="../report/evaluation.rst",
+            category="{scene}",
+            subcategory=evaluation_subcategory,
+        ),
     params:
         options=scene_section("evaluate"),
     log:
