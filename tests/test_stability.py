@@ -24,6 +24,7 @@ from srfpipe.srf.data import image_rays, load_posed_images
 from srfpipe.srf.model import MAX_STEPS_ACROSS_BOX, SRFModel, build_model_config
 from srfpipe.srf.synthetic import look_at, write_labels, write_scene
 from srfpipe.srf.trainer import train
+from test_train import tiny_options as quick_training
 
 CUBE = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
@@ -56,11 +57,11 @@ def assert_finite_gradients(model: SRFModel) -> int:
 
 
 def tiny_options(**overrides) -> dict:
-    options = dict(section_defaults("train"), iterations=15, rays_per_batch=128, default_cells=16, grid_levels=1,
-                   outer_resolution=8, hidden=16, outer_samples=8, before_samples=4, checkpoint_every=0,
-                   log_every=5, occupancy_update_every=4, occupancy_warmup=8, time_budget=0)
-    options.update(overrides)
-    return options
+    """test_train's quick training settings, smaller still (15 steps of 128 rays, a 16-cell grid)."""
+    smaller = dict(iterations=15, rays_per_batch=128, default_cells=16, grid_levels=1, outer_resolution=8,
+                   hidden=16, outer_samples=8, before_samples=4, checkpoint_every=0, occupancy_update_every=4,
+                   occupancy_warmup=8)
+    return quick_training(**{**smaller, **overrides})
 
 
 @pytest.fixture(scope="module")
