@@ -126,6 +126,39 @@ def test_multi_resolution_dense_grid_levels_and_outputs():
     assert build_encoding(grid.config()).config() == grid.config()
 
 
+def test_fine_levels_resolve_detail_the_dense_grid_cannot_in_a_hashed_table():
+    """A fine level twice as fine as the grid, in a table of fewer rows than its points, fits
+    stripes whose zeros fall on every grid point (the grid alone can only return their mean);
+    its config round-trips."""
+    from srfpipe.srf.encodings import build_encoding
+
+    torch.manual_seed(0)
+    coarse = build_encoding({"type": "dense", "resolution": [9, 2, 2], "features": 2, "levels": 1})
+    fine = build_encoding({"type": "dense", "resolution": [9, 2, 2], "features": 2, "levels": 1,
+                           "fine_levels": 1, "log2_table_size": 7})
+    level = fine.grids[-1]
+    assert level.resolution == (17, 3, 3) and level.hashed and level.table.shape == (128, 2)
+    assert fine.output_dim == 4 and build_encoding(fine.config()).config() == fine.config()
+
+    def stripes(u):  # period: two grid cells (cells 0.25 wide): zero at the grid's points
+        return torch.sin(math.pi * (u[:, :1] + 1.0) / 0.25)
+
+    x = torch.rand(4096, 3) * 2 - 1
+    errors = []
+    for grid in (coarse, fine):
+        head = torch.nn.Linear(grid.output_dim, 1)
+        optimizer = torch.optim.Adam([*grid.parameters(), *head.parameters()], lr=0.05)
+        for _ in range(300):
+            optimizer.zero_grad()
+            loss = ((head(grid(x)) - stripes(x)) ** 2).mean()
+            loss.backward()
+            optimizer.step()
+        assert all(torch.isfinite(p.grad).all() for p in grid.parameters())
+        test = torch.rand(2048, 3) * 2 - 1
+        errors.append(float(((head(grid(test)) - stripes(test)) ** 2).mean()))
+    assert errors[0] > 0.4 and errors[1] < 0.1, errors  # the mean square of the stripes is 0.5
+
+
 def test_multi_resolution_model_renders_and_learns_a_coarse_shape_through_its_coarse_level():
     """A one-ray gradient reaches every level, and a coarse cell covers 4x as much of the box."""
     options = dict(section_defaults("train"), grid_levels=3, features=4, appearance_dim=0)

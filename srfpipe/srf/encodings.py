@@ -82,17 +82,29 @@ def _axis_weights(frac: torch.Tensor) -> torch.Tensor:
 
 
 class DenseGrid(nn.Module):
-    """A dense trainable feature grid over [-1, 1]^3 (grid points at the box corners, like
-    `align_corners=True`), with per-axis resolution so an elongated box keeps square cells."""
+    """A trainable feature grid over [-1, 1]^3 (grid points at the box corners, like
+    `align_corners=True`), with per-axis resolution so an elongated box keeps square cells.
 
-    def __init__(self, resolution: tuple[int, int, int], features: int = 16, init_scale: float = 0.1):
+    With `table_rows` smaller than the number of grid points, the points share a table of that
+    many rows through Instant-NGP's spatial hash: a fine grid costs the memory (and the optimizer
+    the time) of the rows, not of the box, and since most of a box is empty, the few occupied
+    cells rarely collide (their gradients dominate every row they share with empty space).
+    """
+
+    def __init__(self, resolution: tuple[int, int, int], features: int = 16, init_scale: float = 0.1,
+                 table_rows: int | None = None):
         super().__init__()
         if any(int(r) < 2 for r in resolution):
             raise ValueError(f"dense grid resolution must be >= 2 per axis, got {resolution}")
         self.resolution = tuple(int(r) for r in resolution)
         self.features = int(features)
         rx, ry, rz = self.resolution
-        self.table = nn.Parameter(torch.empty(rx * ry * rz, self.features).uniform_(-init_scale, init_scale))
+        points = rx * ry * rz
+        self.hashed = table_rows is not None and int(table_rows) < points
+        if self.hashed and int(table_rows) & (int(table_rows) - 1):
+            raise ValueError(f"a hashed grid's table_rows must be a power of two, got {table_rows}")
+        rows = int(table_rows) if self.hashed else points
+        self.table = nn.Parameter(torch.empty(rows, self.features).uniform_(-init_scale, init_scale))
         self.register_buffer("_res", torch.tensor(self.resolution, dtype=torch.float32), persistent=False)
         self.register_buffer("_strides", torch.tensor([ry * rz, rz, 1], dtype=torch.long), persistent=False)
         self.register_buffer("_corner_offsets", _CORNERS @ self._strides, persistent=False)
@@ -109,8 +121,13 @@ class DenseGrid(nn.Module):
         pos = (u.float().clamp(-1.0, 1.0) + 1.0) * 0.5 * (self._res - 1.0)
         origin = torch.minimum(pos.floor(), self._res - 2.0)
         frac = pos - origin
-        base = (origin.long() * self._strides).sum(dim=-1)  # (M,)
-        index = base.unsqueeze(1) + self._corner_offsets  # (M, 8)
+        if self.hashed:
+            corners = origin.long().unsqueeze(1) + _CORNERS.to(u.device)  # (M, 8, 3)
+            hashed = (corners[..., 0] * _PRIMES[0]) ^ (corners[..., 1] * _PRIMES[1]) ^ (corners[..., 2] * _PRIMES[2])
+            index = hashed & (self.table.shape[0] - 1)
+        else:
+            base = (origin.long() * self._strides).sum(dim=-1)  # (M,)
+            index = base.unsqueeze(1) + self._corner_offsets  # (M, 8)
         return interpolated_gather(self.table, index, _axis_weights(frac))
 
 
@@ -122,26 +139,36 @@ class MultiResolutionDenseGrid(nn.Module):
 
     `combine` = "concat" (features of all levels, coarse first: M x levels*F) or "sum" (one
     F-vector, the sum over levels: the density grid's log-density is a coarse term plus corrections).
+
+    `fine_levels` more levels, each twice as fine again as `resolution`, hold the detail that a
+    dense grid cannot afford (a 384^3 x 8 grid is 0.6 GB before Adam's state): each keeps at
+    most 2^`log2_table_size` rows, hashed when its points are more (see `DenseGrid`).
     """
 
-    def __init__(self, resolution, features: int = 8, levels: int = 3, combine: str = "concat"):
+    def __init__(self, resolution, features: int = 8, levels: int = 3, combine: str = "concat",
+                 fine_levels: int = 0, log2_table_size: int = 22):
         super().__init__()
         if combine not in ("concat", "sum"):
             raise ValueError(f"combine must be 'concat' or 'sum', got {combine!r}")
         self.resolution = tuple(int(r) for r in resolution)
         self.features, self.levels, self.combine = int(features), int(levels), combine
-        self.grids = nn.ModuleList(
-            DenseGrid(level_resolution(self.resolution, self.levels - 1 - level), self.features)
-            for level in range(self.levels)
-        )
+        self.fine_levels, self.log2_table_size = int(fine_levels), int(log2_table_size)
+        grids = [DenseGrid(level_resolution(self.resolution, self.levels - 1 - level), self.features)
+                 for level in range(self.levels)]
+        grids += [DenseGrid(finer_resolution(self.resolution, level + 1), self.features,
+                            table_rows=2**self.log2_table_size) for level in range(self.fine_levels)]
+        self.grids = nn.ModuleList(grids)
 
     @property
     def output_dim(self) -> int:
-        return self.features * (self.levels if self.combine == "concat" else 1)
+        return self.features * (len(self.grids) if self.combine == "concat" else 1)
 
     def config(self) -> dict:
-        return {"type": "dense", "resolution": list(self.resolution), "features": self.features,
-                "levels": self.levels, "combine": self.combine}
+        config = {"type": "dense", "resolution": list(self.resolution), "features": self.features,
+                  "levels": self.levels, "combine": self.combine}
+        if self.fine_levels:
+            config.update(fine_levels=self.fine_levels, log2_table_size=self.log2_table_size)
+        return config
 
     def forward(self, u: torch.Tensor) -> torch.Tensor:
         values = [grid(u) for grid in self.grids]
@@ -151,6 +178,11 @@ class MultiResolutionDenseGrid(nn.Module):
 def level_resolution(resolution, halvings: int) -> tuple[int, int, int]:
     """Grid points per axis of a grid with cells 2^halvings times as wide over the same box."""
     return tuple(max(int(math.ceil((int(r) - 1) / 2**halvings)) + 1, 2) for r in resolution)
+
+
+def finer_resolution(resolution, doublings: int) -> tuple[int, int, int]:
+    """Grid points per axis of a grid with cells 2^doublings times as fine over the same box."""
+    return tuple((int(r) - 1) * 2**doublings + 1 for r in resolution)
 
 
 class HashGrid(nn.Module):
@@ -275,9 +307,10 @@ def build_encoding(config: dict, device="cpu") -> nn.Module:
     kind = config.pop("type")
     prefer_tcnn = config.pop("prefer_tcnn", True)
     if kind == "dense":
-        if int(config.get("levels", 1)) > 1:
+        if int(config.get("levels", 1)) > 1 or int(config.get("fine_levels", 0)) > 0:
             return MultiResolutionDenseGrid(config["resolution"], config.get("features", 8),
-                                            int(config["levels"]), config.get("combine", "concat"))
+                                            int(config.get("levels", 1)), config.get("combine", "concat"),
+                                            int(config.get("fine_levels", 0)), int(config.get("log2_table_size", 22)))
         return DenseGrid(tuple(config["resolution"]), config.get("features", 16))
     if kind == "hash":
         if prefer_tcnn and tcnn_available(device):

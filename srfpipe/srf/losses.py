@@ -69,7 +69,8 @@ def grid_total_variation(encoding) -> torch.Tensor:
     multi-resolution grid)."""
     from srfpipe.srf.encodings import DenseGrid
 
-    grids = [m for m in encoding.modules() if isinstance(m, DenseGrid)]
+    # a hashed level's rows are not neighbours in space
+    grids = [m for m in encoding.modules() if isinstance(m, DenseGrid) and not m.hashed]
     return sum(total_variation(g.table, g.resolution) for g in grids)
 
 

@@ -75,10 +75,15 @@ def build_model_config(options: dict, bounds_world, scene_from_world, classes: l
         inner = {"type": "dense", "resolution": resolution, "features": features}
         g = int(options.get("outer_resolution", 48))
         outer = {"type": "dense", "resolution": [g, g, g], "features": features} if contraction else None
-        if levels > 1:
+        fine_levels = int(options.get("fine_levels") or 0)
+        if levels > 1 or fine_levels:
             inner["levels"] = levels
             if outer:
                 outer["levels"] = levels
+        if fine_levels:
+            for grid in (inner, outer):
+                if grid:
+                    grid.update(fine_levels=fine_levels, log2_table_size=int(options.get("fine_log2_table_size", 22)))
     elif encoding == "hash":
         finest = max(resolution) * (2 if contraction else 1)
         inner = {"type": "hash", "levels": int(options.get("hash_levels", 16)),
