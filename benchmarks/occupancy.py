@@ -62,13 +62,16 @@ def voxelize_mesh(path: Path, grid, closed: bool) -> np.ndarray:
     return binary_fill_holes(out) if closed else out
 
 
-def accuracy(cache, ground_truth: Path) -> dict:
+def class_accuracy(cache, ground_truth: Path, classes: dict = MESH_CLASSES) -> tuple[dict, dict]:
+    """iou_/precision_/recall_/voxels_true_/voxels_pred_<class> of the cache's class occupancy against
+    ground_truth/meshes/<class>.ply voxelized on the cache's grid, for each of `classes` (name ->
+    closed); and the voxelized ground truth of each class (z, y, x). A class the cache lacks predicts
+    nothing. benchmarks/tradeoff.py reports these per setting."""
     from srfpipe.artifacts import open_artifact
 
-    group = open_artifact(cache.path, stage="distill")
-    predicted = group["class_occupancy"][...].astype(bool)
+    predicted = open_artifact(cache.path, stage="distill")["class_occupancy"][...].astype(bool)
     metrics, truths = {}, {}
-    for name, closed in MESH_CLASSES.items():
+    for name, closed in classes.items():
         truth = voxelize_mesh(ground_truth / "meshes" / f"{name}.ply", cache.grid, closed)
         pred = predicted[cache.classes.index(name)] if name in cache.classes else np.zeros_like(truth)
         tp = float(np.logical_and(pred, truth).sum())
@@ -79,6 +82,14 @@ def accuracy(cache, ground_truth: Path) -> dict:
         metrics[f"voxels_true_{name}"] = int(truth.sum())
         metrics[f"voxels_pred_{name}"] = int(pred.sum())
         truths[name] = truth
+    return metrics, truths
+
+
+def accuracy(cache, ground_truth: Path) -> dict:
+    from srfpipe.artifacts import open_artifact
+
+    group = open_artifact(cache.path, stage="distill")
+    metrics, truths = class_accuracy(cache, ground_truth)
     metrics["iou_by_alpha_threshold"] = threshold_sweep(group, cache, truths)
     metrics["apple_precision"] = metrics["precision_apple"]
     metrics["apple_recall"] = metrics["recall_apple"]

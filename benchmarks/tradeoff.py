@@ -5,10 +5,18 @@ the setting's overrides), built to `eval` and `occupancy.zarr` by Snakemake, one
 on the machine's cores. For each setting the report holds held-out PSNR (whole image and object
 pixels), SSIM, mIoU against ground truth, training seconds and steps, the peak memory of the
 training job (Snakemake's benchmark file), and the milliseconds to render a 64 x 64 frame
-(RGB + semantics) from the trained field.
+(RGB + semantics) from the trained field. Where the capture has ground truth, also from the setting's
+occupancy.zarr:
+
+* occupancy_iou: the mean over the cache's classes with a ground-truth mesh of their occupancy IoU
+  (benchmarks/occupancy.py's voxelization and counts; per class in occupancy_iou_classes);
+* fruit_count / fruit_count_gt / fruit_count_error (|count - gt|), fruit_matched, fruit_centroid_err:
+  the simulator package's fruit instances (srfpipe.sim.package's find_instances on the reach
+  classes, matched to apples.json / berries.json as `srfpipe package` does), without building sim/.
 
     python benchmarks/tradeoff.py            # presets and knobs on the orchard and the plant
     python benchmarks/tradeoff.py --quick    # a 60-second budget per setting, orchard only (< 15 min)
+    python benchmarks/tradeoff.py --backfill # only the ground-truth columns of the settings already built
 
 Writes benchmarks/results/tradeoff.json and tradeoff.png (quality against training time).
 """
@@ -27,6 +35,7 @@ import numpy as np
 import yaml
 
 from common import REPO, machine_info, result_path, rule_seconds, run_workflow, write_result, write_workdir
+from occupancy import MESH_CLASSES, class_accuracy
 
 # name -> (scene overrides). Presets first, then one knob at a time against `balanced`.
 SETTINGS = {
@@ -47,6 +56,10 @@ SETTINGS = {
 PRESETS = ("fast", "balanced", "accurate", "paper")
 QUICK_SETTINGS = ["fast", "balanced", "rays-1024", "cells-64", "levels-3"]
 QUICK_BUDGET = 60
+# ground-truth meshes voxelized with the interior filled (closed) or as a surface: the orchard's as in
+# benchmarks/occupancy.py, the plant's stem (capsules, like the branches) and berries closed; any other
+# class as a surface
+CLOSED_CLASSES = {**MESH_CLASSES, "stem": True, "berry": True}
 
 
 def merge(base: dict, overrides: dict) -> dict:
@@ -106,6 +119,85 @@ def render_ms(srf: Path, size: int = 64, repeats: int = 5) -> float | None:
     return (time.perf_counter() - started) / repeats * 1000.0
 
 
+def ground_truth_folder(results: Path) -> Path | None:
+    """The capture's ground_truth/ that `srfpipe package` reads (recorded in images.zarr), else
+    results/<scene>/capture/ground_truth; None without one."""
+    from srfpipe.sim.package import _read_ground_truth
+
+    folder = _read_ground_truth(results / "images.zarr")[0] if (results / "images.zarr").exists() else None
+    fallback = results / "capture" / "ground_truth"
+    return folder or (fallback if (fallback / "scene.json").exists() else None)
+
+
+def occupancy_iou(results: Path) -> dict:
+    """occupancy_iou (mean) and occupancy_iou_classes: per class of occupancy.zarr that has a
+    ground-truth mesh (ground_truth/meshes/<class>.ply), the IoU of benchmarks/occupancy.py's
+    class_accuracy; {} without a cache, ground truth or such a class."""
+    from srfpipe.occupancy import OccupancyCache
+
+    folder = ground_truth_folder(results)
+    if folder is None or not (results / "occupancy.zarr").exists():
+        return {}
+    cache = OccupancyCache.load(results / "occupancy.zarr")
+    classes = {name: CLOSED_CLASSES.get(name, False) for name in cache.classes
+               if (folder / "meshes" / f"{name}.ply").exists()}
+    if not classes:
+        return {}
+    metrics, _ = class_accuracy(cache, folder, classes)
+    per_class = {name: metrics[f"iou_{name}"] for name in classes}
+    return {"occupancy_iou": round(float(np.mean(list(per_class.values()))), 4), "occupancy_iou_classes": per_class}
+
+
+def scene_options(workdir: Path, name: str, section: str) -> dict:
+    """The validated `section` of the setting's scene file in the work directory (what the workflow
+    passes the stage), else the section's defaults."""
+    from srfpipe.config import load_scene, section_defaults
+
+    path = workdir / "config" / "scenes" / f"{name}.yaml"
+    return load_scene(path)[section] if path.exists() else section_defaults(section)
+
+
+def fruit_counts(results: Path, options: dict) -> dict:
+    """The simulator package's fruit instances against the ground truth, without building sim/: as
+    `srfpipe package` (srfpipe.sim.package.package) does for scene.json's ground_truth, each reach
+    class of occupancy.zarr goes through find_instances and match_ground_truth (`options`: the scene's
+    sim section) against its ground-truth file (apples.json, berries.json). Summed over the reach
+    classes that have one; {} when none does."""
+    from srfpipe.artifacts import meta, open_artifact
+    from srfpipe.occupancy.grid import VoxelGrid
+    from srfpipe.sim.package import find_instances, ground_truth_file, match_ground_truth
+
+    folder = ground_truth_folder(results)
+    if folder is None or not (results / "occupancy.zarr").exists():
+        return {}
+    group = open_artifact(results / "occupancy.zarr", stage="distill")
+    attrs = meta(group)
+    grid = VoxelGrid.from_attrs(attrs["grid"])
+    classes = list(attrs["classes"])
+    reach = [c for c, role in zip(attrs["distance"]["classes"], attrs["distance"]["roles"]) if role == "reach"]
+    matches = []
+    for name in reach:
+        truth_file = ground_truth_file(folder, name)
+        if truth_file is None:
+            continue
+        found = find_instances(np.asarray(group["class_occupancy"][classes.index(name)], dtype=bool), grid.origin,
+                               grid.voxel_size, options["min_instance_voxels"], options["split_min_radius_voxels"])
+        matches.append(match_ground_truth(found, json.loads(truth_file.read_text()), options["match_radii"]))
+    if not matches:
+        return {}
+    count, count_gt = sum(m["count"] for m in matches), sum(m["count_gt"] for m in matches)
+    matched = sum(m["matched"] for m in matches)
+    error = sum(m["centroid_err_mean"] * m["matched"] for m in matches if m["matched"])
+    return {"fruit_count": count, "fruit_count_gt": count_gt, "fruit_count_error": abs(count - count_gt),
+            "fruit_matched": matched, "fruit_centroid_err": error / matched if matched else None}
+
+
+def ground_truth_columns(workdir: Path, name: str) -> dict:
+    """The columns measured against the capture's ground truth from the setting's occupancy.zarr."""
+    results = workdir / "results" / name
+    return {**occupancy_iou(results), **fruit_counts(results, scene_options(workdir, name, "sim"))}
+
+
 def setting_report(workdir: Path, name: str) -> dict:
     from srfpipe.artifacts import read_provenance
 
@@ -127,7 +219,73 @@ def setting_report(workdir: Path, name: str) -> dict:
     report["train_peak_memory_mb"] = peak_memory_mb(workdir, name, "train")
     report["render_64_ms"] = render_ms(srf)
     report["distill_ok"] = (results / "occupancy.zarr").exists()
+    if report["distill_ok"]:
+        report.update(ground_truth_columns(workdir, name))
     return report
+
+
+def backfill(workdir: Path) -> int:
+    """Only the ground-truth columns (ground_truth_columns) of the settings built in `workdir`, merged
+    into tradeoff.json and/or tradeoff_quick.json: into an entry only when the setting's srf.zarr was
+    trained by that run (its train config and train_seconds equal the entry's) and its occupancy.zarr
+    was distilled from that srf.zarr after it was written."""
+    from srfpipe.artifacts import read_provenance
+
+    paths = {quick: result_path("tradeoff", quick) for quick in (False, True)}
+    reports = {quick: json.loads(path.read_text()) for quick, path in paths.items() if path.exists()}
+    changed = set()
+    for results in sorted(p for p in (workdir / "results").iterdir() if p.is_dir()):
+        name, srf, cache = results.name, results / "srf.zarr", results / "occupancy.zarr"
+        if not (srf.exists() and cache.exists()):
+            print(f"{name}: no srf.zarr and occupancy.zarr, skipped")
+            continue
+        trained, distilled = read_provenance(srf), read_provenance(cache)
+        sources = [Path(i["path"]) for i in distilled.get("inputs", []) if i.get("stage") == "train"]
+        from_srf = any((workdir / p).resolve() == srf.resolve() for p in sources)
+        if not from_srf or distilled["created"] < trained["created"]:
+            print(f"{name}: occupancy.zarr was not distilled from this srf.zarr ({sources}), skipped")
+            continue
+        owners = [quick for quick, report in reports.items()
+                  if (entry := report["settings"].get(name)) is not None
+                  and entry.get("train_config") == trained.get("config")
+                  and entry.get("train_seconds") == trained.get("train_seconds")]
+        if not owners:
+            print(f"{name}: srf.zarr (train_seconds {trained.get('train_seconds')}) matches no entry of "
+                  f"{', '.join(paths[q].name for q in reports)}, skipped")
+            continue
+        columns = ground_truth_columns(workdir, name)
+        for quick in owners:
+            print(f"{name}: -> {paths[quick].name}: {columns}")
+            reports[quick]["settings"][name].update(columns)
+            if "presets" in reports[quick]:
+                reports[quick]["presets"] = preset_summary(reports[quick]["settings"])
+            changed.add(quick)
+    for quick in sorted(changed):
+        write_result(paths[quick], reports[quick])
+        print_table(reports[quick]["settings"])
+    return 0
+
+
+def preset_summary(per_setting: dict) -> dict:
+    """Each preset on the orchard: the issue's keys."""
+    return {name.split("-", 1)[1]: {"psnr": r.get("psnr"), "psnr_object": r.get("psnr_object"),
+                                    "miou": r.get("miou_gt"), "train_seconds": r.get("train_seconds"),
+                                    "occupancy_iou": r.get("occupancy_iou"),
+                                    "fruit_count_error": r.get("fruit_count_error")}
+            for name, r in per_setting.items()
+            if name.startswith("orchard-") and name.split("-", 1)[1] in PRESETS}
+
+
+def print_table(per_setting: dict) -> None:
+    print(f"{'setting':28} {'psnr':>6} {'obj':>6} {'ssim':>6} {'mIoU':>6} {'train s':>8} {'steps':>6} {'64px ms':>8} "
+          f"{'MB':>7} {'occIoU':>6} {'fruit/gt':>8}")
+    for name, s in per_setting.items():
+        cells = [s.get(k) for k in ("psnr", "psnr_object", "ssim", "miou_gt", "train_seconds")]
+        text = " ".join(f"{v:6.2f}" if isinstance(v, float) else f"{'-':>6}" for v in cells)
+        fruit = f"{s['fruit_count']}/{s['fruit_count_gt']}" if "fruit_count" in s else "-"
+        occupancy = f"{s['occupancy_iou']:6.3f}" if s.get("occupancy_iou") is not None else f"{'-':>6}"
+        print(f"{name:28} {text} {s.get('steps') or '-':>6} {s.get('render_64_ms') or float('nan'):8.1f} "
+              f"{s.get('train_peak_memory_mb') or float('nan'):7.0f} {occupancy} {fruit:>8}")
 
 
 def pareto_plot(per_setting: dict, path: Path, size=(900, 420)) -> None:
@@ -173,7 +331,12 @@ def main() -> int:
     parser.add_argument("--scenes", nargs="+", default=None, help="scene files of config/scenes (default orchard plant)")
     parser.add_argument("--settings", nargs="+", default=None, choices=sorted(SETTINGS))
     parser.add_argument("--workdir", type=Path, default=REPO / "benchmarks" / "work" / "tradeoff")
+    parser.add_argument("--backfill", action="store_true",
+                        help="build nothing: add the ground-truth columns (occupancy IoU, fruit count) of the settings "
+                             "already built in --workdir to the result file of the run that trained them")
     args = parser.parse_args()
+    if args.backfill:
+        return backfill(args.workdir)
     scenes = args.scenes or (["orchard"] if args.quick else ["orchard", "plant"])
     settings = args.settings or (QUICK_SETTINGS if args.quick else list(SETTINGS))
 
@@ -197,21 +360,11 @@ def main() -> int:
         scenes = sorted(set(earlier.get("scenes", [])) | set(scenes))
     report = {"settings": per_setting, "overrides": overrides, "workflow_seconds": seconds,
               "machine": machine_info(quick=args.quick), "scenes": scenes,
-              # each preset on the orchard: the issue's keys
-              "presets": {name.split("-", 1)[1]: {"psnr": r.get("psnr"), "psnr_object": r.get("psnr_object"),
-                                                  "miou": r.get("miou_gt"), "train_seconds": r.get("train_seconds")}
-                          for name, r in per_setting.items()
-                          if name.startswith("orchard-") and name.split("-", 1)[1] in PRESETS}}
+              "presets": preset_summary(per_setting)}
     suffix = "_quick" if args.quick else ""
     pareto_plot(per_setting, REPO / "benchmarks" / "results" / f"tradeoff{suffix}.png")
     write_result(path, report)
-
-    print(f"{'setting':28} {'psnr':>6} {'obj':>6} {'ssim':>6} {'mIoU':>6} {'train s':>8} {'steps':>6} {'64px ms':>8} {'MB':>7}")
-    for name, s in per_setting.items():
-        cells = [s.get(k) for k in ("psnr", "psnr_object", "ssim", "miou_gt", "train_seconds")]
-        text = " ".join(f"{v:6.2f}" if isinstance(v, float) else f"{'-':>6}" for v in cells)
-        print(f"{name:28} {text} {s.get('steps') or '-':>6} {s.get('render_64_ms') or float('nan'):8.1f} "
-              f"{s.get('train_peak_memory_mb') or float('nan'):7.0f}")
+    print_table(per_setting)
     return 0
 
 
