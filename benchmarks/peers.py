@@ -374,12 +374,37 @@ def nerfacto_checkpoints(run: Path, clock: dict[int, float]) -> dict[str, float]
 # (runs with the nerfstudio environment's Python: no srfpipe import)
 
 
+class _PlainTagsLoader(yaml.SafeLoader):
+    """A safe loader that reads nerfstudio's config.yml (Python object tags such as
+    !!python/object:nerfstudio...TrainerConfig) as plain mappings, lists and strings:
+    nothing is imported or constructed."""
+
+
+def _plain(loader: yaml.SafeLoader, _suffix: str, node: yaml.Node):
+    if isinstance(node, yaml.MappingNode):
+        return loader.construct_mapping(node, deep=True)
+    if isinstance(node, yaml.SequenceNode):
+        return loader.construct_sequence(node, deep=True)
+    return loader.construct_scalar(node)
+
+
+_PlainTagsLoader.add_multi_constructor("", _plain)
+
+
+def read_tagged_yaml(path: Path):
+    loader = _PlainTagsLoader(path.read_text())
+    try:
+        return loader.get_single_data()
+    finally:
+        loader.dispose()
+
+
 def nerfstudio_side(argv: list[str]) -> int:
     action, run = argv[0], Path(argv[1])
     if action == "clock":
         from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-        config = yaml.load((run / "config.yml").read_text(), Loader=yaml.Loader)
+        config = read_tagged_yaml(run / "config.yml")
         events = []
         for path in sorted(run.glob("events.out.tfevents.*")):
             accumulator = EventAccumulator(str(path), size_guidance={"scalars": 0})
@@ -387,7 +412,7 @@ def nerfstudio_side(argv: list[str]) -> int:
             if ITER_TAG in accumulator.Tags()["scalars"]:
                 events += accumulator.Scalars(ITER_TAG)
         events.sort(key=lambda e: e.step)
-        print(json.dumps({"window": int(config.logging.max_buffer_size), "steps": [e.step for e in events],
+        print(json.dumps({"window": int(config["logging"]["max_buffer_size"]), "steps": [e.step for e in events],
                           "means": [e.value for e in events], "walls": [e.wall_time for e in events]}))
         return 0
     if action == "render":  # render FOLDER NPZ CHECKPOINT: the eval views with a checkpoint's weights
@@ -396,7 +421,7 @@ def nerfstudio_side(argv: list[str]) -> int:
 
         out, checkpoint = Path(argv[2]), Path(argv[3])
         _, pipeline, _, _ = eval_setup(run / "config.yml", test_mode="test")
-        state = torch.load(checkpoint, map_location="cpu")
+        state = torch.load(checkpoint, map_location="cpu", weights_only=True)  # tensors, numbers, dicts
         pipeline.load_pipeline(state["pipeline"], state["step"])
         pipeline.eval()
         dataset = pipeline.datamanager.eval_dataset
