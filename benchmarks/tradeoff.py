@@ -165,7 +165,7 @@ def fruit_counts(results: Path, options: dict) -> dict:
     classes that have one; {} when none does."""
     from srfpipe.artifacts import meta, open_artifact
     from srfpipe.occupancy.grid import VoxelGrid
-    from srfpipe.sim.package import find_instances, ground_truth_file, match_ground_truth
+    from srfpipe.sim.package import reach_instances
 
     folder = ground_truth_folder(results)
     if folder is None or not (results / "occupancy.zarr").exists():
@@ -173,16 +173,10 @@ def fruit_counts(results: Path, options: dict) -> dict:
     group = open_artifact(results / "occupancy.zarr", stage="distill")
     attrs = meta(group)
     grid = VoxelGrid.from_attrs(attrs["grid"])
-    classes = list(attrs["classes"])
     reach = [c for c, role in zip(attrs["distance"]["classes"], attrs["distance"]["roles"]) if role == "reach"]
-    matches = []
-    for name in reach:
-        truth_file = ground_truth_file(folder, name)
-        if truth_file is None:
-            continue
-        found = find_instances(np.asarray(group["class_occupancy"][classes.index(name)], dtype=bool), grid.origin,
-                               grid.voxel_size, options["min_instance_voxels"], options["split_min_radius_voxels"])
-        matches.append(match_ground_truth(found, json.loads(truth_file.read_text()), options["match_radii"]))
+    _, truth = reach_instances(group["class_occupancy"], list(attrs["classes"]), reach, grid.origin,
+                               grid.voxel_size, options, folder)
+    matches = list(truth.values())
     if not matches:
         return {}
     count, count_gt = sum(m["count"] for m in matches), sum(m["count_gt"] for m in matches)

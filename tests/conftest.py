@@ -60,19 +60,23 @@ class Workflow:
 
     def dry_run_jobs(self, *targets: str) -> dict[str, int]:
         """Rule name -> job count that a dry run (`-n`) would execute."""
-        result = self.run("-n", *targets)
-        jobs: dict[str, int] = {}
-        in_table = False
-        for line in result.stdout.splitlines():
-            parts = line.split()
-            if parts[:2] == ["job", "count"]:
-                in_table = True
-                continue
-            if in_table and parts[:1] == ["total"]:
-                break  # the job table ends; the rule displays that follow have "jobid: 8" lines
-            if in_table and len(parts) == 2 and parts[1].isdigit():
-                jobs[parts[0]] = int(parts[1])
-        return jobs
+        return job_counts(self.run("-n", *targets).stdout)
+
+
+def job_counts(dry_run_stdout: str) -> dict[str, int]:
+    """Rule name -> job count from the job table that `snakemake -n` prints."""
+    jobs: dict[str, int] = {}
+    in_table = False
+    for line in dry_run_stdout.splitlines():
+        parts = line.split()
+        if parts[:2] == ["job", "count"]:
+            in_table = True
+            continue
+        if in_table and parts[:1] == ["total"]:
+            break  # the job table ends; the rule displays that follow have "jobid: 8" lines
+        if in_table and len(parts) == 2 and parts[1].isdigit():
+            jobs[parts[0]] = int(parts[1])
+    return jobs
 
 
 @pytest.fixture

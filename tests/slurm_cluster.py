@@ -31,7 +31,7 @@ from pathlib import Path
 
 import yaml
 
-from tests.conftest import REPO, snakemake_env
+from tests.conftest import REPO, job_counts, snakemake_env
 
 DAEMONS = ("munged", "slurmctld", "slurmd", "sbatch", "squeue", "sinfo", "scontrol", "srun")
 MUNGE_RUN = Path("/run/munge")
@@ -375,15 +375,5 @@ def dry_run_jobs(workdir: Path, *targets: str) -> dict[str, int]:
                "-d", str(workdir), "--cores", "2"]
     result = subprocess.run(command, capture_output=True, text=True, env=snakemake_env(), cwd=workdir,
                             check=True)
-    jobs: dict[str, int] = {}
-    in_table = False
-    for line in result.stdout.splitlines():
-        parts = line.split()
-        if parts[:2] == ["job", "count"]:
-            in_table = True
-        elif in_table and parts[:1] == ["total"]:
-            break
-        elif in_table and len(parts) == 2 and parts[1].isdigit():
-            jobs[parts[0]] = int(parts[1])
-    return jobs
+    return job_counts(result.stdout)
 

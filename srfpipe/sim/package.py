@@ -165,6 +165,31 @@ def ground_truth_file(folder: Path, class_name: str) -> Path | None:
 # ------------------------------------------------------------------------------------------------ meshes
 
 
+def reach_instances(class_occupancy, classes: list[str], reach: list[str], origin, voxel_size: float,
+                    options: dict, gt_folder: Path | None) -> tuple[dict[str, list[dict]], dict[str, dict]]:
+    """The instances (find_instances) of each reach class of the cache, and, where the capture has a
+    ground-truth file for the class, their match against it (match_ground_truth; each instance gets
+    its ground_truth_index)."""
+    instances: dict[str, list[dict]] = {}
+    ground_truth: dict[str, dict] = {}
+    for name in reach:
+        found = find_instances(np.asarray(class_occupancy[classes.index(name)], dtype=bool), origin, voxel_size,
+                               options["min_instance_voxels"], options["split_min_radius_voxels"])
+        for inst in found:
+            inst["class"] = name
+        instances[name] = found
+        gt_file = ground_truth_file(gt_folder, name) if gt_folder else None
+        if gt_file is not None:
+            truth = json.loads(gt_file.read_text())
+            result = match_ground_truth(found, truth, options["match_radii"])
+            for inst, m in zip(found, result.pop("instance_match")):
+                inst["ground_truth_index"] = m
+            ground_truth[name] = {"file": str(gt_file), **result}
+            log.info("%s: %d instances, %d in the ground truth, %d matched, mean centroid error %s",
+                     name, result["count"], result["count_gt"], result["matched"], result["centroid_err_mean"])
+    return instances, ground_truth
+
+
 def class_mesh(occupied: np.ndarray, origin, voxel_size: float, max_triangles: int):
     """Marching cubes (level 0.5) on a (z, y, x) occupancy grid -> open3d TriangleMesh in world units,
     closed (the grid is padded), decimated to at most `max_triangles`; None when nothing is occupied."""
@@ -372,25 +397,10 @@ def package(occupancy_path, srf_path, out_path, options: dict, images_path=None,
         return best * s
 
     # fruit instances of each reach class, and their ground truth
-    instances: dict[str, list[dict]] = {}
-    ground_truth: dict[str, dict] = {}
-    for name in reach:
-        found = find_instances(class_occ[classes.index(name)], grid.origin, v, options["min_instance_voxels"],
-                               options["split_min_radius_voxels"])
-        for inst in found:
-            inst["centroid_sim"] = (np.asarray(inst["centroid"]) * s).tolist()
-            inst["radius_sim"] = inst["radius"] * s
-            inst["class"] = name
-        instances[name] = found
-        gt_file = ground_truth_file(gt_folder, name) if gt_folder else None
-        if gt_file is not None:
-            truth = json.loads(gt_file.read_text())
-            result = match_ground_truth(found, truth, options["match_radii"])
-            for inst, m in zip(found, result.pop("instance_match")):
-                inst["ground_truth_index"] = m
-            ground_truth[name] = {"file": str(gt_file), **result}
-            log.info("%s: %d instances, %d in the ground truth, %d matched, mean centroid error %s",
-                     name, result["count"], result["count_gt"], result["matched"], result["centroid_err_mean"])
+    instances, ground_truth = reach_instances(class_occ, classes, reach, grid.origin, v, options, gt_folder)
+    for inst in (inst for found in instances.values() for inst in found):
+        inst["centroid_sim"] = (np.asarray(inst["centroid"]) * s).tolist()
+        inst["radius_sim"] = inst["radius"] * s
     targets = [inst for name in reach for inst in instances[name]]
 
     # the arm, sized to the scene, and a station per target

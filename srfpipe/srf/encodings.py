@@ -25,6 +25,12 @@ _CORNERS = torch.tensor([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], dty
 _PRIMES = (1, 2654435761, 805459861)
 
 
+def spatial_hash(corners: torch.Tensor) -> torch.Tensor:
+    """Instant-NGP's spatial hash xor_i(x_i * pi_i) of integer grid points (..., 3); the caller
+    takes it modulo its (power-of-two) table size."""
+    return (corners[..., 0] * _PRIMES[0]) ^ (corners[..., 1] * _PRIMES[1]) ^ (corners[..., 2] * _PRIMES[2])
+
+
 class _InterpolatedGather(torch.autograd.Function):
     """out[m] = sum_k weights[m, k] * table[index[m, k]] for a channels-last table (N, F).
 
@@ -123,8 +129,7 @@ class DenseGrid(nn.Module):
         frac = pos - origin
         if self.hashed:
             corners = origin.long().unsqueeze(1) + _CORNERS.to(u.device)  # (M, 8, 3)
-            hashed = (corners[..., 0] * _PRIMES[0]) ^ (corners[..., 1] * _PRIMES[1]) ^ (corners[..., 2] * _PRIMES[2])
-            index = hashed & (self.table.shape[0] - 1)
+            index = spatial_hash(corners) & (self.table.shape[0] - 1)
         else:
             base = (origin.long() * self._strides).sum(dim=-1)  # (M,)
             index = base.unsqueeze(1) + self._corner_offsets  # (M, 8)
@@ -248,8 +253,7 @@ class HashGrid(nn.Module):
         weights = _axis_weights(frac)  # (M, L, 8)
         side = self._res.long().view(1, -1, 1) + 1  # vertices per axis
         dense_index = corners[..., 0] * side * side + corners[..., 1] * side + corners[..., 2]
-        hashed = (corners[..., 0] * _PRIMES[0]) ^ (corners[..., 1] * _PRIMES[1]) ^ (corners[..., 2] * _PRIMES[2])
-        index = torch.where(self._dense.view(1, -1, 1), dense_index, hashed) & (self.table_size - 1)
+        index = torch.where(self._dense.view(1, -1, 1), dense_index, spatial_hash(corners)) & (self.table_size - 1)
         index = index + self._offsets.view(1, -1, 1)  # (M, L, 8)
         # one gather for all levels: rows are (point, level) pairs
         out = interpolated_gather(self.table, index.view(m * self.levels, 8), weights.view(m * self.levels, 8))
