@@ -387,6 +387,8 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
     tv_density = float(options.get("tv_density", 0.0))
     distortion_weight = float(options.get("distortion", 0.0))
     tv_features = float(options.get("tv_features", 0.0))
+    tv_samples = options.get("tv_samples")
+    tv_samples = None if tv_samples is None else int(tv_samples)
 
     torch.manual_seed(seed)
     config = build_model_config(options, data.bounds_world, data.scene_from_world, data.classes,
@@ -461,9 +463,11 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
             if distortion_weight:
                 parts["loss"] = parts["loss"] + distortion_weight * outputs["distortion"]
             if tv_density and model.field.density_grid:
-                parts["loss"] = parts["loss"] + tv_density * losses.grid_total_variation(model.field.inner_sigma)
+                parts["loss"] = parts["loss"] + tv_density * losses.grid_total_variation(
+                    model.field.inner_sigma, tv_samples, generator)
             if tv_features and model.field.density_grid:
-                parts["loss"] = parts["loss"] + tv_features * losses.grid_total_variation(model.field.inner)
+                parts["loss"] = parts["loss"] + tv_features * losses.grid_total_variation(
+                    model.field.inner, tv_samples, generator)
             optimizer.zero_grad(set_to_none=True)
             if scaler_needed:
                 scaler.scale(parts["loss"]).backward()
