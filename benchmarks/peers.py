@@ -421,7 +421,14 @@ def nerfstudio_side(argv: list[str]) -> int:
 
         out, checkpoint = Path(argv[2]), Path(argv[3])
         _, pipeline, _, _ = eval_setup(run / "config.yml", test_mode="test")
-        state = torch.load(checkpoint, map_location="cpu", weights_only=True)  # tensors, numbers, dicts
+        import numpy
+        from numpy.core.multiarray import scalar  # the name nerfstudio's checkpoints refer to
+
+        # still weights_only (no code runs from the file): nerfstudio's checkpoints hold numpy
+        # scalars, so the plain-data numpy types they are rebuilt from are allowed, as torch advises
+        dtypes = [type(numpy.dtype(t)) for t in numpy.typecodes["All"]]  # Float64DType, ...
+        with torch.serialization.safe_globals([scalar, numpy.dtype, *dtypes]):
+            state = torch.load(checkpoint, map_location="cpu", weights_only=True)
         pipeline.load_pipeline(state["pipeline"], state["step"])
         pipeline.eval()
         dataset = pipeline.datamanager.eval_dataset
