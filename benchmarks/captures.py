@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from common import REPO, machine_info, result_path, rule_seconds, run_workflow, write_result, write_workdir
+from common import REPO, earlier_measurements, machine_info, result_path, rule_seconds, run_workflow, write_result, write_workdir
 
 FOX = (REPO / ".." / "shared" / "data" / "fox").resolve()
 
@@ -132,8 +132,7 @@ def main() -> int:
     measured_now = sorted(per_scene)
     if previous_file.exists():  # a run of some scenes keeps the others' last measurement
         previous = json.loads(previous_file.read_text()).get("scenes", {})
-        per_scene = {**{n: dict(s, measured_in_an_earlier_run=True) for n, s in previous.items()
-                        if n not in per_scene}, **per_scene}
+        per_scene = {**earlier_measurements(previous, per_scene), **per_scene}
     report: dict = {"scenes": per_scene, "measured_now": measured_now, "workflow_seconds": seconds,
                     "machine": machine_info(quick=args.quick), "scene_configs": scenes}
     fox, plant, orchard = (per_scene.get(n, {}) for n in ("fox", "plant", "orchard"))

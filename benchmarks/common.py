@@ -85,6 +85,13 @@ def result_path(name: str, quick: bool) -> Path:
     return RESULTS / f"{name}{'_quick' if quick else ''}.json"
 
 
+def earlier_measurements(previous: dict[str, dict], measured_now) -> dict[str, dict]:
+    """The per-scene entries of a previous result file that this run did not measure, marked
+    `measured_in_an_earlier_run` (a run of some scenes keeps the others' last measurement)."""
+    return {name: dict(entry, measured_in_an_earlier_run=True)
+            for name, entry in previous.items() if name not in measured_now}
+
+
 def write_result(path: Path, report: dict) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(report, indent=1) + "\n")

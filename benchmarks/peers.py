@@ -57,7 +57,7 @@ import numpy as np
 import yaml
 
 from captures import FOX, scene_configs
-from common import REPO, machine_info, result_path, rule_seconds, run_workflow, write_result, write_workdir
+from common import REPO, earlier_measurements, machine_info, result_path, rule_seconds, run_workflow, write_result, write_workdir
 
 SCENES = ["orchard", "fox"]
 BUDGETS = [60, 120, 300, 600]
@@ -709,11 +709,11 @@ def main() -> int:
     if previous_file.exists():  # a run of some scenes keeps the others' last measurement
         previous = json.loads(previous_file.read_text())
         if previous.get("budgets_seconds") == args.budgets:
-            for name in previous.get("scenes", []):
-                if name not in report["measured_now"] and name in previous:
-                    report[name] = dict(previous[name], measured_in_an_earlier_run=True)
-                    earlier = previous.get("config", {}).get("srfpipe_scene_configs", {}).get(name)
-                    report["config"]["srfpipe_scene_configs"][name] = earlier
+            earlier = earlier_measurements({n: previous[n] for n in previous.get("scenes", []) if n in previous},
+                                           scenes)
+            report.update(earlier)
+            earlier_configs = previous.get("config", {}).get("srfpipe_scene_configs", {})
+            report["config"]["srfpipe_scene_configs"].update({n: earlier_configs.get(n) for n in earlier})
             scenes = report["scenes"] = [n for n in SCENES if n in report]
     suffix = "_quick" if quick else ""
     plot(report, scenes, REPO / "benchmarks" / "results" / f"peers{suffix}.png")
