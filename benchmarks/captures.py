@@ -148,7 +148,8 @@ def main() -> int:
         report["thin_bounds_ratio"] = box_volume(plant["bounds"]["box"]) / box_volume(truth["object_bounds_world"])
         report["thin_bounds_ratio_poses"] = box_volume(plant["bounds"]["poses_box"]) / box_volume(
             truth["object_bounds_world"])
-    montage(results, list(scenes), REPO / "benchmarks" / "results" / f"captures{'_quick' if args.quick else ''}.png")
+    # every scene in the report whose renders are in the work directory, measured now or earlier
+    montage(results, list(per_scene), REPO / "benchmarks" / "results" / f"captures{'_quick' if args.quick else ''}.png")
     write_result(result_path("captures", args.quick), report)
 
     print(f"{'scene':8} {'psnr':>6} {'obj':>6} {'ssim':>6} {'mIoU':>6} {'floaters':>8} {'bounds':>10} distill")
