@@ -95,3 +95,34 @@ def test_total_variation_at_random_cells_estimates_the_exact_value_and_flattens_
         optimizer.step()
     after = values.detach().reshape(res)
     assert float(after[2, 25, 29]) < 1.0 < 4.0 < float(after[12, 14, 16])
+
+
+def test_background_opacity_loss_clears_the_box_along_rays_that_show_no_class():
+    """Rays whose pixel shows none of the classes lose the opacity they gather inside the box;
+    the contracted shell and the rays that show a class are not asked anything."""
+    from test_stability import rays, tiny_model
+
+    model = tiny_model(classes=1)
+    model.train()
+    origins, directions = rays(64)
+    labels = torch.zeros(64, 1)
+    labels[:32] = 1.0  # half the rays show the class
+    missing = torch.tensor([[0.0, 0.0, 3.0]]), torch.tensor([[0.0, 1.0, 0.0]])  # passes above the box
+    out = model(torch.cat([origins, missing[0]]), torch.cat([directions, missing[1]]))
+    assert float(out["box_accumulation"][-1]) == 0.0
+    assert bool((out["box_accumulation"] <= out["accumulation"] + 1e-6).all())
+
+    first = float(losses.background_opacity_loss(out["box_accumulation"][:64], labels))
+    assert first > 0.05
+    optimizer = torch.optim.Adam(model.parameters(), lr=0.05)
+    for _ in range(60):
+        out = model(origins, directions)
+        loss = losses.background_opacity_loss(out["box_accumulation"], labels)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    out = model(origins, directions)
+    assert float(losses.background_opacity_loss(out["box_accumulation"], labels)) < 0.1 * first
+    # no ray without a class: zero, with a graph
+    none = losses.background_opacity_loss(out["box_accumulation"], torch.ones(64, 1))
+    assert float(none) == 0.0 and none.requires_grad

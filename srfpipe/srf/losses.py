@@ -49,6 +49,20 @@ def total_loss(
     return {"loss": photo + lambda_sem * sem, "photometric": photo, "semantic": sem}
 
 
+def background_opacity_loss(box_accumulation: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+    """Mean opacity inside the model box of the rays whose pixel shows none of the classes.
+
+    When the box is the masks' visual hull, such a ray crosses the box through empty space: any
+    opacity it gathers there is fog or a floater that the photometric loss cannot see against a
+    plain background (dark density in front of a dark backdrop costs nothing in the training
+    views and hides the object in the others). box_accumulation (R,), labels (R, C) multi-hot.
+    """
+    background = labels.sum(dim=-1) == 0
+    if not bool(background.any()):
+        return box_accumulation.sum() * 0.0
+    return box_accumulation.float()[background].mean()
+
+
 def total_variation(table: torch.Tensor, resolution, samples: int | None = None,
                     generator: torch.Generator | None = None) -> torch.Tensor:
     """Mean squared difference between neighbouring grid points along x, y and z (Plenoxels' TV).

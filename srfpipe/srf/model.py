@@ -213,6 +213,11 @@ class SRFModel(nn.Module):
             d = float(max(b - a for a, b in zip(self.config["box_min"], self.config["box_max"])))
             out["distortion"] = rendering.distortion(
                 weights, samples.t_start / (samples.t_start + d), samples.t_end / (samples.t_end + d)).mean()
+            # opacity the model box alone gives each ray (the contracted shell excluded): the
+            # background-opacity loss asks it to be zero where the masks see none of the classes
+            in_box = (field.box_coordinates(points).abs() <= 1.0).all(dim=-1)
+            in_box_pad = torch.zeros(n, k, dtype=torch.bool, device=in_box.device).masked_scatter(mask, in_box)
+            out["box_accumulation"] = (weights * in_box_pad).sum(dim=-1)
         else:
             tolerance = FLOATER_CELLS * self.config["detail_scene"] + samples.delta
             out["significant"], out["floaters"] = rendering.floater_counts(

@@ -253,6 +253,8 @@ REAL_CAPTURE_APPEARANCE_DIM = 8
 # fits the training views (built-in plant, 2 min: held-out 13.9 dB at opacity 0.01 per step,
 # 26.3 dB at 0.001; the fox 19.2 vs 19.0 dB with the grid 84 % vs 23 % occupied).
 TRUSTED_BOUNDS = ("config", "ground_truth")
+# weight of the background-opacity loss when the box is the masks' visual hull (set by the plant trials)
+HULL_BACKGROUND_OPACITY = 0.01
 
 
 # The grid's default cell count, and the cap of the finest level when the pixels ask for more.
@@ -304,6 +306,9 @@ def resolve_data_defaults(options: dict, data) -> dict:
 
     initial_opacity: 0.01 per step when the bounds are known (config, ground truth), 0.001 when
     they were estimated (see TRUSTED_BOUNDS).
+    background_opacity: when the box is the masks' visual hull, a pixel that shows none of the
+    classes sees empty space through the box, so opacity there is penalised; any other box
+    (the orchard's ground, a room) may hold things the classes do not name, so it is off.
     appearance_dim: a real capture's images differ in exposure and white balance, which a
     per-image embedding absorbs (Nerfacto, NeRF-W); a generated capture (it has ground truth)
     has none, and the embedding would only add parameters.
@@ -314,6 +319,10 @@ def resolve_data_defaults(options: dict, data) -> dict:
         trusted = data.bounds_source in TRUSTED_BOUNDS
         options["initial_opacity"] = 0.01 if trusted else 0.001
         log.info("initial_opacity %g (bounds from %s)", options["initial_opacity"], data.bounds_source)
+    if options.get("background_opacity") is None:
+        hull = data.bounds_source == "mask_hull" and len(data.classes) > 0
+        options["background_opacity"] = HULL_BACKGROUND_OPACITY if hull else 0.0
+        log.info("background_opacity %g (bounds from %s)", options["background_opacity"], data.bounds_source)
     if options.get("appearance_dim") is None:
         options["appearance_dim"] = 0 if data.gt_label is not None else REAL_CAPTURE_APPEARANCE_DIM
         log.info("appearance_dim %d (%s capture)", options["appearance_dim"],
@@ -386,6 +395,7 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
     lambda_sem = float(options.get("lambda_sem", 1.0))
     tv_density = float(options.get("tv_density", 0.0))
     distortion_weight = float(options.get("distortion", 0.0))
+    background_opacity = float(options.get("background_opacity") or 0.0)
     tv_features = float(options.get("tv_features", 0.0))
     tv_samples = options.get("tv_samples")
     tv_samples = None if tv_samples is None else int(tv_samples)
@@ -462,6 +472,9 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
             parts = losses.total_loss(outputs["rgb"], rgb, outputs["logits"], labels_batch, lambda_sem)
             if distortion_weight:
                 parts["loss"] = parts["loss"] + distortion_weight * outputs["distortion"]
+            if background_opacity and labels_batch is not None:
+                parts["loss"] = parts["loss"] + background_opacity * losses.background_opacity_loss(
+                    outputs["box_accumulation"], labels_batch)
             if tv_density and model.field.density_grid:
                 parts["loss"] = parts["loss"] + tv_density * losses.grid_total_variation(
                     model.field.inner_sigma, tv_samples, generator)
