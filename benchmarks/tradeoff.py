@@ -80,8 +80,21 @@ def setting_scenes(scenes: list[str], settings: list[str], quick: bool) -> dict[
             scene = merge(base, SETTINGS[setting])
             if quick:  # every setting gets the same short budget
                 scene.setdefault("train", {})["time_budget"] = QUICK_BUDGET
-            out[f"{scene_name}-{setting}"] = scene
+            name = f"{scene_name}-{setting}"
+            out[name] = renamed_paths(scene, f"results/{scene_name}/", f"results/{name}/")
     return out
+
+
+def renamed_paths(value, old: str, new: str):
+    """The scene with paths into its own results (the plant's imported ground-truth masks) moved
+    to the setting's results folder, which is where the setting's capture is generated."""
+    if isinstance(value, dict):
+        return {k: renamed_paths(v, old, new) for k, v in value.items()}
+    if isinstance(value, list):
+        return [renamed_paths(v, old, new) for v in value]
+    if isinstance(value, str) and value.startswith(old):
+        return new + value[len(old):]
+    return value
 
 
 def peak_memory_mb(workdir: Path, scene: str, job: str) -> float | None:
@@ -344,17 +357,24 @@ def main() -> int:
         print(f"some jobs failed: see {args.workdir / 'snakemake.log'} and {args.workdir / 'logs'}")
 
     per_setting = {name: setting_report(args.workdir, name) for name in configs}
+    failed = sorted(name for name, report in per_setting.items() if report.get("psnr") is None)
+    if failed:  # a setting that was not built has no numbers to report (nor to keep)
+        print(f"not built, left out of the report: {', '.join(failed)}")
+    per_setting = {name: report for name, report in per_setting.items() if name not in failed}
     overrides = {s: SETTINGS[s] for s in settings}
     path = result_path("tradeoff", args.quick)
+    notes = {}
     if path.exists() and (args.settings or args.scenes):
         # a partial run (some settings or scenes) updates those entries and keeps the others
         earlier = json.loads(path.read_text())
-        per_setting = {**earlier.get("settings", {}), **per_setting}
+        per_setting = {**{k: v for k, v in earlier.get("settings", {}).items() if v.get("psnr") is not None},
+                       **per_setting}
         overrides = {**earlier.get("overrides", {}), **overrides}
         scenes = sorted(set(earlier.get("scenes", [])) | set(scenes))
+        notes = {"note": earlier["note"]} if earlier.get("note") else {}
     report = {"settings": per_setting, "overrides": overrides, "workflow_seconds": seconds,
               "machine": machine_info(quick=args.quick), "scenes": scenes,
-              "presets": preset_summary(per_setting)}
+              "presets": preset_summary(per_setting), **notes}
     suffix = "_quick" if args.quick else ""
     pareto_plot(per_setting, REPO / "benchmarks" / "results" / f"tradeoff{suffix}.png")
     write_result(path, report)
