@@ -97,6 +97,11 @@ def renamed_paths(value, old: str, new: str):
     return value
 
 
+def built(settings: dict[str, dict]) -> dict[str, dict]:
+    """The settings that have numbers: one that was not built has nothing to report or keep."""
+    return {name: report for name, report in settings.items() if report.get("psnr") is not None}
+
+
 def peak_memory_mb(workdir: Path, scene: str, job: str) -> float | None:
     path = workdir / "benchmarks" / "runs" / scene / f"{job}.tsv"
     if not path.exists():
@@ -356,19 +361,17 @@ def main() -> int:
         seconds = None
         print(f"some jobs failed: see {args.workdir / 'snakemake.log'} and {args.workdir / 'logs'}")
 
-    per_setting = {name: setting_report(args.workdir, name) for name in configs}
-    failed = sorted(name for name, report in per_setting.items() if report.get("psnr") is None)
-    if failed:  # a setting that was not built has no numbers to report (nor to keep)
+    measured = {name: setting_report(args.workdir, name) for name in configs}
+    per_setting = built(measured)  # a failed setting keeps an earlier run's numbers, if any
+    if failed := sorted(set(measured) - set(per_setting)):
         print(f"not built, left out of the report: {', '.join(failed)}")
-    per_setting = {name: report for name, report in per_setting.items() if name not in failed}
     overrides = {s: SETTINGS[s] for s in settings}
     path = result_path("tradeoff", args.quick)
     notes = {}
     if path.exists() and (args.settings or args.scenes):
         # a partial run (some settings or scenes) updates those entries and keeps the others
         earlier = json.loads(path.read_text())
-        per_setting = {**{k: v for k, v in earlier.get("settings", {}).items() if v.get("psnr") is not None},
-                       **per_setting}
+        per_setting = {**built(earlier.get("settings", {})), **per_setting}
         overrides = {**earlier.get("overrides", {}), **overrides}
         scenes = sorted(set(earlier.get("scenes", [])) | set(scenes))
         notes = {"note": earlier["note"]} if earlier.get("note") else {}

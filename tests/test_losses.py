@@ -108,7 +108,7 @@ def test_background_opacity_loss_clears_the_box_along_rays_that_show_no_class():
     labels = torch.zeros(64, 1)
     labels[:32] = 1.0  # half the rays show the class
     missing = torch.tensor([[0.0, 0.0, 3.0]]), torch.tensor([[0.0, 1.0, 0.0]])  # passes above the box
-    out = model(torch.cat([origins, missing[0]]), torch.cat([directions, missing[1]]))
+    out = model(torch.cat([origins, missing[0]]), torch.cat([directions, missing[1]]), box_accumulation=True)
     assert float(out["box_accumulation"][-1]) == 0.0
     assert bool((out["box_accumulation"] <= out["accumulation"] + 1e-6).all())
 
@@ -116,12 +116,12 @@ def test_background_opacity_loss_clears_the_box_along_rays_that_show_no_class():
     assert first > 0.05
     optimizer = torch.optim.Adam(model.parameters(), lr=0.05)
     for _ in range(60):
-        out = model(origins, directions)
+        out = model(origins, directions, box_accumulation=True)
         loss = losses.background_opacity_loss(out["box_accumulation"], labels)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
-    out = model(origins, directions)
+    out = model(origins, directions, box_accumulation=True)
     assert float(losses.background_opacity_loss(out["box_accumulation"], labels)) < 0.1 * first
     # no ray without a class: zero, with a graph
     none = losses.background_opacity_loss(out["box_accumulation"], torch.ones(64, 1))

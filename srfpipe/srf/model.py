@@ -158,9 +158,10 @@ class SRFModel(nn.Module):
         samples.candidates = candidates
         return samples
 
-    def forward(self, origins, directions, image_index=None, jitter=None) -> dict:
+    def forward(self, origins, directions, image_index=None, jitter=None, box_accumulation=False) -> dict:
         """Render rays (R, 3) in the scene frame. Returns rgb (R, 3), logits (R, C), depth (R,)
-        (scene-frame distance along the ray), accumulation (R,), samples (number evaluated)."""
+        (scene-frame distance along the ray), accumulation (R,), samples (number evaluated);
+        in training with `box_accumulation`, also the opacity gathered inside the box alone (R,)."""
         field = self.field
         samples = self.sample(origins, directions, jitter)
         mask = samples.mask
@@ -213,12 +214,14 @@ class SRFModel(nn.Module):
             d = float(max(b - a for a, b in zip(self.config["box_min"], self.config["box_max"])))
             out["distortion"] = rendering.distortion(
                 weights, samples.t_start / (samples.t_start + d), samples.t_end / (samples.t_end + d)).mean()
+        if self.training and box_accumulation:
             # opacity the model box alone gives each ray (the contracted shell excluded): the
-            # background-opacity loss asks it to be zero where the masks see none of the classes
+            # background-opacity loss asks it to be zero where the masks see none of the classes;
+            # only then, as it costs a pass over every sample of the step
             in_box = (field.box_coordinates(points).abs() <= 1.0).all(dim=-1)
             in_box_pad = torch.zeros(n, k, dtype=torch.bool, device=in_box.device).masked_scatter(mask, in_box)
             out["box_accumulation"] = (weights * in_box_pad).sum(dim=-1)
-        else:
+        if not self.training:
             tolerance = FLOATER_CELLS * self.config["detail_scene"] + samples.delta
             out["significant"], out["floaters"] = rendering.floater_counts(
                 weights, samples.t_mid, tolerance, FLOATER_WEIGHT)

@@ -468,7 +468,8 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
             origins, directions, image, rgb, labels_batch = sample_batch(data, train_views, batch, generator, device)
             jitter = torch.rand(batch, generator=generator).to(device)
             with autocast:
-                outputs = model(origins, directions, image, jitter)
+                outputs = model(origins, directions, image, jitter,
+                                box_accumulation=bool(background_opacity and labels_batch is not None))
             parts = losses.total_loss(outputs["rgb"], rgb, outputs["logits"], labels_batch, lambda_sem)
             if distortion_weight:
                 parts["loss"] = parts["loss"] + distortion_weight * outputs["distortion"]
