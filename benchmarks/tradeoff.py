@@ -300,39 +300,91 @@ def print_table(per_setting: dict) -> None:
               f"{s.get('train_peak_memory_mb') or float('nan'):7.0f} {occupancy} {fruit:>8}")
 
 
-def pareto_plot(per_setting: dict, path: Path, size=(900, 420)) -> None:
-    """Quality against training seconds, one panel per metric (PSNR, mIoU), drawn with OpenCV
-    (no plotting library among the project's dependencies)."""
+def pareto_front(points: list[tuple[str, float, float]]) -> list[str]:
+    """Names of the settings no other setting beats on both axes (less time, more quality),
+    in order of time."""
+    front, best = [], -np.inf
+    for name, seconds, quality in sorted(points, key=lambda p: (p[1], -p[2])):
+        if quality > best:
+            front.append(name)
+            best = quality
+    return front
+
+
+def scene_points(per_setting: dict, key: str) -> dict[str, list[tuple[str, float, float]]]:
+    """(setting, training seconds, metric) per scene, for the settings that have both."""
+    points: dict[str, list] = {}
+    for name, s in per_setting.items():
+        if s.get("train_seconds") is not None and s.get(key) is not None:
+            scene, setting = name.split("-", 1)
+            points.setdefault(scene, []).append((setting, float(s["train_seconds"]), float(s[key])))
+    return points
+
+
+def pareto_fronts(per_setting: dict) -> dict:
+    """Per scene and metric, the settings on the Pareto front of quality against training time."""
+    fronts: dict[str, dict] = {}
+    for key in ("psnr", "psnr_object", "miou_gt"):
+        for scene, points in scene_points(per_setting, key).items():
+            fronts.setdefault(scene, {})[key] = pareto_front(points)
+    return fronts
+
+
+PLOT_METRICS = (("psnr", "held-out PSNR (dB)"), ("psnr_object", "object-pixel PSNR (dB)"),
+                ("miou_gt", "mIoU (ground truth)"))
+
+
+def pareto_plot(per_setting: dict, path: Path, panel_size=(360, 300)) -> None:
+    """Quality against training seconds: one row per scene, one panel per metric; presets in
+    red, single knobs in blue, the Pareto front as a line. Drawn with OpenCV (no plotting
+    library among the project's dependencies)."""
     import cv2
 
-    width, height = size
-    panels = []
-    for key, label in (("psnr", "held-out PSNR (dB)"), ("miou_gt", "held-out mIoU (ground truth)")):
-        points = [(n, s["train_seconds"], s[key]) for n, s in per_setting.items()
-                  if s.get("train_seconds") is not None and s.get(key) is not None]
-        panel = np.full((height, width // 2, 3), 255, np.uint8)
-        if points:
-            xs, ys = np.array([p[1] for p in points]), np.array([p[2] for p in points])
-            x0, x1 = 0.0, float(xs.max()) * 1.1 or 1.0
-            y0, y1 = float(ys.min()) - 0.05 * (np.ptp(ys) + 1e-3), float(ys.max()) + 0.05 * (np.ptp(ys) + 1e-3)
-            left, bottom, w, h = 50, height - 40, width // 2 - 70, height - 70
+    width, height = panel_size
+    per_metric = {key: scene_points(per_setting, key) for key, _ in PLOT_METRICS}
+    scenes = sorted({scene for points in per_metric.values() for scene in points})
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    rows = []
+    for scene in scenes:
+        panels = []
+        for key, label in PLOT_METRICS:
+            panel = np.full((height, width, 3), 255, np.uint8)
+            cv2.putText(panel, f"{scene}: {label}", (10, 18), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+            points = per_metric[key].get(scene, [])
+            if points:
+                xs, ys = np.array([p[1] for p in points]), np.array([p[2] for p in points])
+                x0, x1 = 0.0, float(xs.max()) * 1.15 or 1.0
+                pad = 0.08 * (np.ptp(ys) + 1e-3)
+                y0, y1 = float(ys.min()) - pad, float(ys.max()) + pad
+                left, bottom, w, h = 48, height - 36, width - 60, height - 66
 
-            def at(x, y):
-                return int(left + (x - x0) / (x1 - x0) * w), int(bottom - (y - y0) / (y1 - y0) * h)
+                def at(x, y):
+                    return int(left + (x - x0) / (x1 - x0) * w), int(bottom - (y - y0) / (y1 - y0) * h)
 
-            cv2.rectangle(panel, (left, bottom - h), (left + w, bottom), (0, 0, 0), 1)
-            for name, x, y in points:
-                cv2.circle(panel, at(x, y), 4, (200, 80, 0), -1)
-                cv2.putText(panel, name, (at(x, y)[0] + 5, at(x, y)[1] - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1)
-            for value in np.linspace(y0, y1, 5):
-                cv2.putText(panel, f"{value:.2f}", (2, at(x0, value)[1] + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1)
-            for value in np.linspace(x0, x1, 5):
-                cv2.putText(panel, f"{value:.0f}", (at(value, y0)[0] - 8, bottom + 15), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1)
-        cv2.putText(panel, label, (50, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1)
-        cv2.putText(panel, "training seconds (2 CPU cores)", (width // 4 - 100, height - 8),
-                    cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1)
-        panels.append(panel)
-    cv2.imwrite(str(path), np.concatenate(panels, axis=1))
+                cv2.rectangle(panel, (left, bottom - h), (left + w, bottom), (0, 0, 0), 1)
+                front = pareto_front(points)
+                by_name = {p[0]: p for p in points}
+                line = np.array([at(by_name[n][1], by_name[n][2]) for n in front], np.int32)
+                cv2.polylines(panel, [line], False, (160, 160, 160), 1, cv2.LINE_AA)
+                for name, x, y in points:
+                    colour = (40, 40, 210) if name in PRESETS else (200, 90, 0)  # BGR: presets red, knobs blue
+                    cv2.circle(panel, at(x, y), 4 if name in front else 3, colour, -1, cv2.LINE_AA)
+                    cv2.putText(panel, name, (at(x, y)[0] + 5, at(x, y)[1] - 4), font, 0.3, colour, 1, cv2.LINE_AA)
+                decimals = max(0, 1 - int(np.floor(np.log10(y1 - y0))))  # ticks that differ
+                for value in np.linspace(y0, y1, 5):
+                    cv2.putText(panel, f"{value:.{decimals}f}", (2, at(x0, value)[1] + 4), font, 0.3, (0, 0, 0), 1, cv2.LINE_AA)
+                for value in np.linspace(x0, x1, 5):
+                    cv2.putText(panel, f"{value:.0f}", (at(value, y0)[0] - 8, bottom + 13), font, 0.3, (0, 0, 0), 1,
+                                cv2.LINE_AA)
+            else:
+                cv2.putText(panel, "no setting measured", (60, height // 2), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+            cv2.putText(panel, "training seconds (2 CPU cores)", (width // 2 - 90, height - 6), font, 0.38,
+                        (0, 0, 0), 1, cv2.LINE_AA)
+            panels.append(panel)
+        rows.append(np.concatenate(panels, axis=1))
+    if not rows:
+        return
+    cv2.imwrite(str(path), np.concatenate(rows, axis=0))
     print(f"wrote {path}")
 
 
@@ -377,7 +429,7 @@ def main() -> int:
         notes = {"note": earlier["note"]} if earlier.get("note") else {}
     report = {"settings": per_setting, "overrides": overrides, "workflow_seconds": seconds,
               "machine": machine_info(quick=args.quick), "scenes": scenes,
-              "presets": preset_summary(per_setting), **notes}
+              "presets": preset_summary(per_setting), "pareto": pareto_fronts(per_setting), **notes}
     suffix = "_quick" if args.quick else ""
     pareto_plot(per_setting, REPO / "benchmarks" / "results" / f"tradeoff{suffix}.png")
     write_result(path, report)

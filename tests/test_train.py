@@ -11,7 +11,7 @@ from srfpipe.srf.data import split_views
 from srfpipe.srf.io import read_curve, read_srf
 from srfpipe.srf.query import SemanticRadianceField
 from srfpipe.srf.synthetic import write_scene
-from srfpipe.srf.trainer import train
+from srfpipe.srf.trainer import learning_rate, train
 
 
 def tiny_options(**overrides):
@@ -55,6 +55,16 @@ def test_overfitting_one_tiny_image_raises_psnr(tmp_path):
     start, end = curve["psnr"][:2].mean(), curve["psnr"][-3:].mean()
     assert end > start + 8.0, (start, end)
     assert end > 24.0
+
+
+def test_learning_rate_holds_then_decays_to_lr_final():
+    assert learning_rate(0.0, 1e-2, 1e-3) == pytest.approx(1e-2)
+    assert learning_rate(0.5, 1e-2, 1e-3) == pytest.approx(1e-2 * 0.1**0.5)
+    # held for the first 80 % of the run, then the whole decay in the last 20 %
+    assert learning_rate(0.8, 1e-2, 1e-3, hold=0.8) == pytest.approx(1e-2)
+    assert learning_rate(0.9, 1e-2, 1e-3, hold=0.8) == pytest.approx(1e-2 * 0.1**0.5)
+    assert learning_rate(1.0, 1e-2, 1e-3, hold=0.8) == pytest.approx(1e-3)
+    assert learning_rate(1.5, 1e-2, 1e-3, hold=1.0) == pytest.approx(1e-2)  # hold 1: never decays
 
 
 @pytest.fixture

@@ -74,9 +74,14 @@ def step_generator(seed: int, step: int, device="cpu"):
     return torch.Generator(device=device).manual_seed(int.from_bytes(digest[:8], "little") >> 1)
 
 
-def learning_rate(progress: float, lr: float, lr_final: float) -> float:
-    """Exponential decay from lr (progress 0) to lr_final (progress 1)."""
-    return lr * (lr_final / lr) ** min(max(progress, 0.0), 1.0)
+def learning_rate(progress: float, lr: float, lr_final: float, hold: float = 0.0) -> float:
+    """lr until progress `hold`, then exponential decay to lr_final at progress 1.
+
+    The hold is for short budgets: fog leaves empty cells only by many large steps on their
+    log-density, and a decay that starts at once stalls it (orchard, 60 s: held-out 23.9 dB with
+    the decay from step 0, 25.2 dB with none)."""
+    decay = (min(max(progress, 0.0), 1.0) - hold) / max(1.0 - hold, 1e-9)
+    return lr * (lr_final / lr) ** max(decay, 0.0)
 
 
 def training_progress(step: int, iterations: int, seconds: float, time_budget: float) -> float:
@@ -440,6 +445,7 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
     # marks already passed by a resumed run are not saved again
     snapshot_marks = sorted(float(m) for m in options.get("snapshot_seconds") or [] if float(m) > train_seconds)
     lr, lr_final = float(options["lr"]), float(options.get("lr_final", options["lr"] * 0.1))
+    lr_hold = float(options.get("lr_hold", 0.0))
     scale = scene_scale(data.scene_from_world)
     iterations_done = iterations
 
@@ -464,7 +470,7 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
                 model.occupancy.update(model.field.sigma, generator, all_cells=step < warmup)
             for group in optimizer.param_groups:
                 progress = training_progress(step, iterations, train_seconds, time_budget)
-                group["lr"] = learning_rate(progress, lr, lr_final) * group["lr_scale"]
+                group["lr"] = learning_rate(progress, lr, lr_final, lr_hold) * group["lr_scale"]
             origins, directions, image, rgb, labels_batch = sample_batch(data, train_views, batch, generator, device)
             jitter = torch.rand(batch, generator=generator).to(device)
             with autocast:
