@@ -245,13 +245,16 @@ class SrfRenderer:
         return result
 
 
-def srf_snapshots(folder: Path) -> dict[str, float]:
-    """snapshot file -> its training seconds."""
+def srf_snapshots(folder: Path, fingerprint: str | None) -> dict[str, float]:
+    """snapshot file -> its training seconds, for the snapshots of the run with `fingerprint`
+    (the one that wrote srf.zarr; a snapshot of an earlier run in the folder is left out)."""
     import torch
 
     out = {}
     for path in sorted(folder.glob("snapshot-*.pt")):
-        out[str(path)] = float(torch.load(path, map_location="cpu", weights_only=True)["train_seconds"])
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        if fingerprint is None or state.get("fingerprint") == fingerprint:
+            out[str(path)] = float(state["train_seconds"])
     return out
 
 
@@ -521,7 +524,7 @@ def run_scene(name: str, args, cache_dir: Path) -> dict:
     srf_renderer = SrfRenderer(results / "srf.zarr", views, heldout)
     final = srf_renderer.metrics(None)
     workflow_eval = json.loads((results / "eval" / "metrics.json").read_text())
-    snapshots = srf_snapshots(results / "srf.ckpt")
+    snapshots = srf_snapshots(results / "srf.ckpt", srf_info.get("fingerprint"))
 
     print(f"=== {name}: nerfacto", flush=True)
     folder = workdir / "nerfacto" / name

@@ -126,6 +126,12 @@ def test_snapshots_hold_the_weights_at_each_mark_and_outlive_the_run(scene, tmp_
     model.load_state_dict(state["model"])  # the same layout as the final weights
     # a monitoring key: the run it belongs to keeps its identity (resumes still match)
     assert attrs["fingerprint"] == _fingerprint_without_snapshots(images, labels, tmp_path)
+    # a new run with other settings in the same folder: the earlier run's snapshot is gone, so a
+    # quality-against-time curve read from the folder holds this run only
+    train(images, labels, out, tiny_options(iterations=12, seed=1, snapshot_seconds=[1e-9]),
+          holdout_every=5, checkpoints=ckpt)
+    snapshots = [torch.load(p, weights_only=True) for p in ckpt.glob("snapshot-*.pt")]
+    assert [s["fingerprint"] for s in snapshots] == [read_srf(out)[1]["fingerprint"]] != [attrs["fingerprint"]]
 
 
 def _fingerprint_without_snapshots(images, labels, tmp_path):

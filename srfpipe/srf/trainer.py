@@ -434,6 +434,10 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
         curve = {k: list(v) for k, v in state["curve"].items()}
         eval_curve = {k: list(v) for k, v in state["eval_curve"].items()}
         log.info("resuming from %s at step %d", ckpt_dir, start_step)
+    elif ckpt_dir.is_dir():
+        # a fresh run: snapshots of an earlier run in this folder would mix into its curve
+        for path in ckpt_dir.glob("snapshot-*.pt"):
+            path.unlink()
 
     log_file = open(metrics_log, "a") if metrics_log else None
     update_every = int(options.get("occupancy_update_every", 16))
