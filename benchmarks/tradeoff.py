@@ -97,6 +97,16 @@ def renamed_paths(value, old: str, new: str):
     return value
 
 
+def scene_and_setting(name: str) -> tuple[str, str]:
+    """`<scene>-<setting>` split at a known setting's name (a scene's name may hold hyphens too);
+    a setting no longer in SETTINGS (an earlier run's, kept in the report) at the first hyphen."""
+    for setting in sorted(SETTINGS, key=len, reverse=True):
+        if name.endswith(f"-{setting}") and len(name) > len(setting) + 1:
+            return name[: -len(setting) - 1], setting
+    scene, _, setting = name.partition("-")
+    return scene, setting
+
+
 def built(settings: dict[str, dict]) -> dict[str, dict]:
     """The settings that have numbers: one that was not built has nothing to report or keep."""
     return {name: report for name, report in settings.items() if report.get("psnr") is not None}
@@ -280,12 +290,14 @@ def backfill(workdir: Path) -> int:
 
 def preset_summary(per_setting: dict) -> dict:
     """Each preset on the orchard: the issue's keys."""
-    return {name.split("-", 1)[1]: {"psnr": r.get("psnr"), "psnr_object": r.get("psnr_object"),
-                                    "miou": r.get("miou_gt"), "train_seconds": r.get("train_seconds"),
-                                    "occupancy_iou": r.get("occupancy_iou"),
-                                    "fruit_count_error": r.get("fruit_count_error")}
-            for name, r in per_setting.items()
-            if name.startswith("orchard-") and name.split("-", 1)[1] in PRESETS}
+    summary = {}
+    for name, r in per_setting.items():
+        scene, setting = scene_and_setting(name)
+        if scene == "orchard" and setting in PRESETS:
+            summary[setting] = {"psnr": r.get("psnr"), "psnr_object": r.get("psnr_object"), "miou": r.get("miou_gt"),
+                                "train_seconds": r.get("train_seconds"), "occupancy_iou": r.get("occupancy_iou"),
+                                "fruit_count_error": r.get("fruit_count_error")}
+    return summary
 
 
 def print_table(per_setting: dict) -> None:
@@ -316,7 +328,7 @@ def scene_points(per_setting: dict, key: str) -> dict[str, list[tuple[str, float
     points: dict[str, list] = {}
     for name, s in per_setting.items():
         if s.get("train_seconds") is not None and s.get(key) is not None:
-            scene, setting = name.split("-", 1)
+            scene, setting = scene_and_setting(name)
             points.setdefault(scene, []).append((setting, float(s["train_seconds"]), float(s[key])))
     return points
 

@@ -77,15 +77,3 @@ def test_snapshot_marks_hold_the_budgets_and_a_finer_grid_early():
     assert marks[:3] == [10.0, 20.0, 30.0] and max(marks) == 600.0
     assert peers.nearest({"a": 58.0, "b": 61.0, "c": 90.0}, 60) == "b"
 
-
-def test_tradeoff_pareto_front_keeps_only_settings_nothing_beats():
-    import tradeoff
-
-    points = [("balanced", 600.0, 28.0), ("fast", 300.0, 27.9), ("slow-worse", 900.0, 27.5),
-              ("rays-8192", 610.0, 28.3), ("tie-slower", 320.0, 27.9), ("quick", 60.0, 21.0)]
-    assert tradeoff.pareto_front(points) == ["quick", "fast", "balanced", "rays-8192"]
-    settings = {f"orchard-{n}": {"train_seconds": s, "psnr": q} for n, s, q in points}
-    settings["plant-fast"] = {"train_seconds": 200.0, "psnr": 29.0, "miou_gt": 0.7}
-    fronts = tradeoff.pareto_fronts(settings)
-    assert fronts["orchard"]["psnr"] == ["quick", "fast", "balanced", "rays-8192"]
-    assert fronts["plant"] == {"psnr": ["fast"], "miou_gt": ["fast"]}
