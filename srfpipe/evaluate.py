@@ -126,6 +126,7 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
             f"{srf}: trained with holdout_every={field.attrs.get('holdout_every')}, evaluate asks for {holdout}"
         )
     _, heldout = split_views(data.count, holdout)
+    supersample = int(options.get("supersample", 1))
     c = len(data.classes)
     semantic = c > 0
     colours = class_colours(data.classes, meta(open_artifact(labels, stage="composite")))
@@ -138,7 +139,7 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
         (tmp / "renders").mkdir()
         for index in heldout:
             pose_world = world_from_scene_pose(field.world_from_scene, data.poses_scene[index].numpy())
-            result = field.render(pose_world, data.intrinsics[index].numpy(), data.width, data.height)
+            result = field.render(pose_world, data.intrinsics[index].numpy(), data.width, data.height, supersample)
             target = data.images[index].numpy().astype(np.float64) / 255.0
             err = (result["rgb"].astype(np.float64) - target) ** 2
             sq_err += float(err.sum())
@@ -167,7 +168,7 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
                           colours, cv2)
         n_values = len(heldout) * data.height * data.width * 3
         result = {
-            "views": len(heldout), "holdout_every": holdout, "classes": list(data.classes),
+            "views": len(heldout), "holdout_every": holdout, "supersample": supersample, "classes": list(data.classes),
             "psnr": -10 * np.log10(max(sq_err / n_values, 1e-12)),
             "ssim": float(np.mean([v["ssim"] for v in per_view])),
         }

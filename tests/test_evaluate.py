@@ -29,13 +29,15 @@ class ExactField:
         self.world_from_scene = np.asarray(attrs["world_from_scene"], dtype=np.float64)
         self.attrs = {"holdout_every": HOLDOUT, "train_seconds": 0.0}
 
-    def render(self, camera_to_world, intrinsics, width, height) -> dict:
-        origins, directions = pixel_rays(camera_to_world, intrinsics, width, height)
+    def render(self, camera_to_world, intrinsics, width, height, supersample=1) -> dict:
+        s = supersample  # the mean of the s x s pixels of the s times finer image
+        origins, directions = pixel_rays(camera_to_world, np.asarray(intrinsics) * s, width * s, height * s)
         rgb, label, depth = synthetic.render(origins, directions)
         hit = np.isfinite(depth)
         semantic = label[..., None] == np.arange(1, len(self.classes) + 1)  # (H, W, C), C may be 0
-        return {"rgb": rgb.astype(np.float32), "semantic": semantic.astype(np.float32),
-                "depth": np.where(hit, depth, 0).astype(np.float32), "accumulation": hit.astype(np.float32)}
+        out = {"rgb": rgb, "semantic": semantic, "depth": np.where(hit, depth, 0), "accumulation": hit}
+        return {key: value.astype(np.float32).reshape(height, s, width, s, *value.shape[2:]).mean((1, 3))
+                for key, value in out.items()}
 
 
 @pytest.fixture(scope="module")

@@ -166,6 +166,24 @@ def test_srf_zarr_round_trip_and_query_api(trained):
         srf.semantic(np.zeros((3, 2)))
 
 
+def test_supersampled_render_is_the_area_mean_of_the_finer_render(trained):
+    # a pixel integrates the light over its footprint: with supersample s, each pixel is the mean of
+    # the s x s pixels of the same camera rendered s times finer (a downscaled image's area average)
+    from srfpipe.srf.synthetic import look_at
+
+    srf = SemanticRadianceField.load(trained, device="cpu")
+    pose, k = look_at((2.0, 0.5, 0.8), (0.0, 0.0, 0.35)), np.array([30.0, 30.0, 16.0, 12.0])
+    coarse = srf.render(pose, k, 32, 24, supersample=2)
+    fine = srf.render(pose, 2 * k, 64, 48)
+    for key in ("rgb", "semantic", "depth", "accumulation"):
+        area_mean = fine[key].reshape(24, 2, 32, 2, *fine[key].shape[2:]).mean((1, 3))
+        np.testing.assert_allclose(coarse[key], area_mean, atol=1e-5, err_msg=key)
+    centre = srf.render(pose, k, 32, 24)
+    assert np.abs(coarse["rgb"] - centre["rgb"]).max() > 1e-3  # not the centre rays again
+    with pytest.raises(ValueError, match="supersample"):
+        srf.render(pose, k, 32, 24, supersample=0)
+
+
 def test_density_is_per_world_unit(trained):
     srf = SemanticRadianceField.load(trained, device="cpu")
     points = np.random.default_rng(1).uniform(-0.4, 0.4, (200, 3)) + [0, 0, 0.45]  # inside the bounds

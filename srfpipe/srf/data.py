@@ -141,21 +141,29 @@ def load_posed_images(images_path, labels_path=None) -> PosedImages:
     )
 
 
-def rays_for_pixels(poses: torch.Tensor, intrinsics: torch.Tensor, u: torch.Tensor, v: torch.Tensor):
-    """Rays through pixel centres (u + 0.5, v + 0.5) of cameras (R, 4, 4) with intrinsics (R, 4).
+def rays_for_pixels(poses: torch.Tensor, intrinsics: torch.Tensor, u: torch.Tensor, v: torch.Tensor,
+                    within: torch.Tensor | float = 0.5):
+    """Rays through the points (u + a, v + b) of pixels (u, v) of cameras (R, 4, 4) with intrinsics (R, 4):
+    `within` (R, 2) holds (a, b) in [0, 1), the point inside each pixel; 0.5 is its centre.
 
     OpenCV camera frame (see srfpipe.cameras). Returns origins and unit directions (R, 3).
     """
     fx, fy, cx, cy = intrinsics.unbind(-1)
-    d_cam = torch.stack([(u.float() + 0.5 - cx) / fx, (v.float() + 0.5 - cy) / fy, torch.ones_like(fx)], -1)
+    a, b = (within, within) if isinstance(within, float) else within.unbind(-1)
+    d_cam = torch.stack([(u.float() + a - cx) / fx, (v.float() + b - cy) / fy, torch.ones_like(fx)], -1)
     d = torch.einsum("rij,rj->ri", poses[:, :3, :3], d_cam)
     d = d / torch.linalg.norm(d, dim=-1, keepdim=True)
     return poses[:, :3, 3].clone(), d
 
 
-def image_rays(pose: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int):
-    """Rays (H*W, 3) through every pixel of one camera, row-major."""
-    v, u = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+def image_rays(pose: torch.Tensor, intrinsics: torch.Tensor, width: int, height: int, supersample: int = 1):
+    """Rays through every pixel of one camera, row-major: (H*W, 3), or with `supersample` s > 1 the
+    s x s points of a regular grid inside each pixel, (H*W*s*s, 3) with a pixel's s*s rays in a row
+    (their mean is the pixel: a pixel integrates the light over its footprint)."""
+    s = int(supersample)
+    v, u, j, i = torch.meshgrid(torch.arange(height), torch.arange(width), torch.arange(s), torch.arange(s),
+                                indexing="ij")
+    within = torch.stack([(i.reshape(-1) + 0.5) / s, (j.reshape(-1) + 0.5) / s], -1)
     u, v = u.reshape(-1), v.reshape(-1)
     n = u.shape[0]
-    return rays_for_pixels(pose.expand(n, 4, 4), intrinsics.expand(n, 4), u, v)
+    return rays_for_pixels(pose.expand(n, 4, 4), intrinsics.expand(n, 4), u, v, within)

@@ -72,9 +72,13 @@ class SemanticRadianceField:
 
     # ------------------------------------------------------------------ queries
 
-    def render(self, camera_to_world, intrinsics, width: int, height: int) -> dict:
+    def render(self, camera_to_world, intrinsics, width: int, height: int, supersample: int = 1) -> dict:
         """Render(P): rgb (H, W, 3) float32 in [0, 1], semantic (H, W, C) probabilities,
-        depth (H, W) distance along each ray in world units, accumulation (H, W) opacity."""
+        depth (H, W) distance along each ray in world units, accumulation (H, W) opacity.
+
+        `supersample` s > 1: each pixel is the mean of s x s rays over its footprint, as a camera's
+        pixel (and a downscaled image's, an area average) integrates the light over its area: thin
+        structures a pixel wide then come out as the partial coverage they have in the image."""
         import torch
 
         from srfpipe.cameras import transform_poses
@@ -89,20 +93,28 @@ class SemanticRadianceField:
         width, height = int(width), int(height)
         if width <= 0 or height <= 0:
             raise ValueError(f"image size must be positive, got {width}x{height}")
+        supersample = int(supersample)
+        if supersample < 1:
+            raise ValueError(f"supersample must be a positive integer, got {supersample}")
         pose_scene = torch.as_tensor(transform_poses(self.scene_from_world, pose), dtype=torch.float32)
-        origins, directions = image_rays(pose_scene, torch.as_tensor(k, dtype=torch.float32), width, height)
+        origins, directions = image_rays(pose_scene, torch.as_tensor(k, dtype=torch.float32), width, height,
+                                         supersample)
         out = self.model.render_rays_chunked(origins.to(self.device), directions.to(self.device), 8192)
+
+        def per_pixel(values, *channels):  # the mean over a pixel's supersample rays
+            return values.numpy().reshape(height, width, supersample**2, *channels).mean(2).astype(np.float32)
+
         return {
-            "rgb": out["rgb"].clamp(0, 1).numpy().reshape(height, width, 3).astype(np.float32),
-            "semantic": out["logits"].sigmoid().numpy().reshape(height, width, -1).astype(np.float32),
-            "depth": (out["depth"].numpy() / self.scale).reshape(height, width).astype(np.float32),
-            "accumulation": out["accumulation"].numpy().reshape(height, width).astype(np.float32),
+            "rgb": per_pixel(out["rgb"].clamp(0, 1), 3),
+            "semantic": per_pixel(out["logits"].sigmoid(), len(self.classes)),
+            "depth": per_pixel(out["depth"] / self.scale),
+            "accumulation": per_pixel(out["accumulation"]),
             # per pixel: samples with weight > 0.03, and those of them off the surface (floaters)
-            "significant_samples": out["significant"].numpy().reshape(height, width).astype(np.float32),
-            "floater_samples": out["floaters"].numpy().reshape(height, width).astype(np.float32),
+            "significant_samples": per_pixel(out["significant"]),
+            "floater_samples": per_pixel(out["floaters"]),
             # per pixel: intervals the sampler placed, and those left after skipping empty space
-            "candidate_samples": out["candidate_samples"].numpy().reshape(height, width).astype(np.float32),
-            "kept_samples": out["kept_samples"].numpy().reshape(height, width).astype(np.float32),
+            "candidate_samples": per_pixel(out["candidate_samples"]),
+            "kept_samples": per_pixel(out["kept_samples"]),
         }
 
     def semantic(self, points_world: np.ndarray) -> np.ndarray:
