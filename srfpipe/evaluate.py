@@ -98,6 +98,18 @@ def evaluate(images, labels, srf, out, options: dict, device="auto") -> dict:
     return evaluate_field(field, data, out, options, labels, srf, curves)
 
 
+# a held-out view rendered with supersampling stays within this many rays (the small views, where
+# a pixel's footprint is large against thin structure, gain from it; see the schema)
+SUPERSAMPLE_MAX_RAYS = 131072
+
+
+def default_supersample(width: int, height: int, asked: int | None) -> int:
+    """The s of evaluate.supersample: the scene's value, else 2 while s*s*W*H <= SUPERSAMPLE_MAX_RAYS, else 1."""
+    if asked is not None:
+        return int(asked)
+    return 2 if 4 * width * height <= SUPERSAMPLE_MAX_RAYS else 1
+
+
 def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) -> dict:
     """Metrics and renders of `field` on the held-out views of `data` (`PosedImages`), into `out`.
 
@@ -126,7 +138,7 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
             f"{srf}: trained with holdout_every={field.attrs.get('holdout_every')}, evaluate asks for {holdout}"
         )
     _, heldout = split_views(data.count, holdout)
-    supersample = int(options.get("supersample", 1))
+    supersample = default_supersample(data.width, data.height, options.get("supersample"))
     c = len(data.classes)
     semantic = c > 0
     colours = class_colours(data.classes, meta(open_artifact(labels, stage="composite")))

@@ -10,12 +10,13 @@ import pytest
 
 from srfpipe.artifacts import read_provenance
 from srfpipe.cameras import pixel_rays
-from srfpipe.evaluate import evaluate_field
+from srfpipe.evaluate import default_supersample, evaluate_field
 from srfpipe.segment.composite import composite_masks
 from srfpipe.srf import synthetic
 from srfpipe.srf.data import load_posed_images
 
 WIDTH, HEIGHT, VIEWS, HOLDOUT = 32, 24, 8, 4
+CENTRES = {"supersample": 1}  # synthetic.write_scene's images are pixel-centre renders
 IOU_KEYS = ("iou", "miou", "miou_classes", "iou_gt", "miou_gt", "miou_gt_classes")
 
 
@@ -53,7 +54,7 @@ def test_zero_classes_give_colour_metrics_and_two_panel_renders(scene):
     data = load_posed_images(images, labels)
     assert data.classes == []
     out = folder / "eval_no_classes"
-    returned = evaluate_field(ExactField(images, []), data, out, {}, labels, "exact")
+    returned = evaluate_field(ExactField(images, []), data, out, CENTRES, labels, "exact")
     saved = json.loads((out / "metrics.json").read_text())
     assert saved["classes"] == [] and saved["views"] == VIEWS // HOLDOUT
     assert saved["psnr"] > 45 and saved["ssim"] > 0.98  # exact renders: only the 8-bit rounding differs
@@ -70,7 +71,7 @@ def test_classes_give_iou_and_three_panel_renders(scene):
     folder, images, labels = scene
     data = load_posed_images(images, labels)
     out = folder / "eval_classes"
-    saved = evaluate_field(ExactField(images, data.classes), data, out, {}, labels, "exact")
+    saved = evaluate_field(ExactField(images, data.classes), data, out, CENTRES, labels, "exact")
     assert saved["classes"] == ["apple", "branch", "leaf"]
     for key in IOU_KEYS + ("psnr_object",):
         assert key in saved, key
@@ -88,3 +89,16 @@ def test_classes_that_differ_from_the_fields_name_both(scene):
                                          r"\[\] \(exact\)"):
         evaluate_field(ExactField(images, []), data, folder / "eval_bad", {}, labels, "exact")
     assert not (folder / "eval_bad").exists()
+
+
+def test_supersampling_is_on_for_small_views_and_measurably_changes_the_render(scene):
+    # the default: 2 x 2 rays per pixel while a view stays within SUPERSAMPLE_MAX_RAYS rays
+    assert default_supersample(128, 128, None) == 2 and default_supersample(160, 120, None) == 2
+    assert default_supersample(270, 480, None) == 1 and default_supersample(270, 480, 3) == 3
+    folder, images, labels = scene
+    data = load_posed_images(images, labels)
+    out = folder / "eval_supersampled"
+    saved = evaluate_field(ExactField(images, data.classes), data, out, {}, labels, "exact")
+    assert saved["supersample"] == 2
+    # against centre-rendered images the area mean differs at the sphere's edges only
+    assert 25 < saved["psnr"] < 45
