@@ -28,6 +28,7 @@ import copy
 import csv
 import json
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -54,12 +55,19 @@ SETTINGS = {
     "voxels-272": {"occupancy": {"voxels_across": 272}},
 }
 PRESETS = ("fast", "balanced", "accurate", "paper")
+# a knob of the cache alone (only the occupancy section) trains nothing: it distills this setting's
+# field again, so the sweep spends no training minutes on a setting whose field would be the same
+CACHE_KNOB_FIELD = "balanced"
 QUICK_SETTINGS = ["fast", "balanced", "rays-1024", "cells-64", "levels-3"]
 QUICK_BUDGET = 60
 # ground-truth meshes voxelized with the interior filled (closed) or as a surface: the orchard's as in
 # benchmarks/occupancy.py, the plant's stem (capsules, like the branches) and berries closed; any other
 # class as a surface
 CLOSED_CLASSES = {**MESH_CLASSES, "stem": True, "berry": True}
+
+
+def is_cache_knob(setting: str) -> bool:
+    return set(SETTINGS.get(setting, {})) == {"occupancy"}
 
 
 def merge(base: dict, overrides: dict) -> dict:
@@ -108,8 +116,10 @@ def scene_and_setting(name: str) -> tuple[str, str]:
 
 
 def built(settings: dict[str, dict]) -> dict[str, dict]:
-    """The settings that have numbers: one that was not built has nothing to report or keep."""
-    return {name: report for name, report in settings.items() if report.get("psnr") is not None}
+    """The settings that have numbers: one that was not built has nothing to report or keep (a
+    cache knob's numbers are its cache's)."""
+    return {name: report for name, report in settings.items()
+            if report.get("psnr") is not None or (report.get("field") and report.get("distill_ok"))}
 
 
 def peak_memory_mb(workdir: Path, scene: str, job: str) -> float | None:
@@ -149,7 +159,10 @@ def render_ms(srf: Path, size: int = 64, repeats: int = 5) -> float | None:
 
 def ground_truth_folder(results: Path) -> Path | None:
     """The capture's ground_truth/ that `srfpipe package` reads (recorded in images.zarr), else
-    results/<scene>/capture/ground_truth; None without one."""
+    results/<scene>/capture/ground_truth; None without one. A cache knob's results hold only its
+    occupancy.zarr: the field's setting holds its capture."""
+    if (results / "field.txt").exists():
+        results = results.parent / (results / "field.txt").read_text().strip()
     from srfpipe.sim.package import _read_ground_truth
 
     folder = _read_ground_truth(results / "images.zarr")[0] if (results / "images.zarr").exists() else None
@@ -217,7 +230,8 @@ def fruit_counts(results: Path, options: dict) -> dict:
 def ground_truth_columns(workdir: Path, name: str) -> dict:
     """The columns measured against the capture's ground truth from the setting's occupancy.zarr."""
     results = workdir / "results" / name
-    return {**occupancy_iou(results), **fruit_counts(results, scene_options(workdir, name, "sim"))}
+    field = (results / "field.txt").read_text().strip() if (results / "field.txt").exists() else name
+    return {**occupancy_iou(results), **fruit_counts(results, scene_options(workdir, field, "sim"))}
 
 
 def setting_report(workdir: Path, name: str) -> dict:
@@ -240,10 +254,48 @@ def setting_report(workdir: Path, name: str) -> dict:
     report["train_wall_seconds"] = rule_seconds(workdir, name, "train")
     report["train_peak_memory_mb"] = peak_memory_mb(workdir, name, "train")
     report["render_64_ms"] = render_ms(srf)
-    report["distill_ok"] = (results / "occupancy.zarr").exists()
-    if report["distill_ok"]:
-        report.update(ground_truth_columns(workdir, name))
+    report["distill_seconds"] = rule_seconds(workdir, name, "distill")
+    report.update(cache_columns(workdir, name))
     return report
+
+
+def cache_columns(workdir: Path, name: str) -> dict:
+    """distill_ok; with a cache, its bytes on disk against the dense grid's, its voxels and the
+    columns measured against the capture's ground truth."""
+    from srfpipe.artifacts import read_provenance
+
+    cache = workdir / "results" / name / "occupancy.zarr"
+    if not cache.exists():
+        return {"distill_ok": False}
+    info = read_provenance(cache)
+    return {"distill_ok": True, "cache_bytes": info.get("bytes_on_disk"), "dense_bytes": info.get("dense_bytes"),
+            "voxels_across": info.get("resolution", {}).get("voxels_across"),
+            "voxel_size": info.get("grid", {}).get("voxel_size"), **ground_truth_columns(workdir, name)}
+
+
+def distill_cache_knob(workdir: Path, scene: str, setting: str) -> dict:
+    """A cache knob: `srfpipe distill` of the scene's CACHE_KNOB_FIELD field with the knob's occupancy
+    overrides (the same stage the workflow's distill rule runs), timed; its report names the field,
+    whose quality columns are the field's. {} when that field was not built."""
+    field = f"{scene}-{CACHE_KNOB_FIELD}"
+    source, results = workdir / "results" / field, workdir / "results" / f"{scene}-{setting}"
+    if not (source / "srf.zarr").exists():
+        return {}
+    results.mkdir(parents=True, exist_ok=True)
+    (results / "field.txt").write_text(field + "\n")
+    log = workdir / "logs" / f"{scene}-{setting}" / "distill.log"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    srfpipe = Path(sys.executable).parent / "srfpipe"
+    command = [str(srfpipe), "distill", "--srf", str(source / "srf.zarr"), "--no-progress",
+               "--scene", str(workdir / "config" / "scenes" / f"{field}.yaml"),
+               "--options", json.dumps(SETTINGS[setting]["occupancy"]), "--out", str(results / "occupancy.zarr")]
+    start = time.perf_counter()
+    with log.open("w") as handle:
+        done = subprocess.run(command, stdout=handle, stderr=subprocess.STDOUT)
+    if done.returncode:
+        print(f"{scene}-{setting}: distill failed, see {log}")
+        return {}
+    return {"field": field, "distill_seconds": time.perf_counter() - start, **cache_columns(workdir, f"{scene}-{setting}")}
 
 
 def backfill(workdir: Path) -> int:
@@ -302,14 +354,15 @@ def preset_summary(per_setting: dict) -> dict:
 
 def print_table(per_setting: dict) -> None:
     print(f"{'setting':28} {'psnr':>6} {'obj':>6} {'ssim':>6} {'mIoU':>6} {'train s':>8} {'steps':>6} {'64px ms':>8} "
-          f"{'MB':>7} {'occIoU':>6} {'fruit/gt':>8}")
+          f"{'MB':>7} {'occIoU':>6} {'fruit/gt':>8} {'cache MB':>8}")
     for name, s in per_setting.items():
         cells = [s.get(k) for k in ("psnr", "psnr_object", "ssim", "miou_gt", "train_seconds")]
         text = " ".join(f"{v:6.2f}" if isinstance(v, float) else f"{'-':>6}" for v in cells)
         fruit = f"{s['fruit_count']}/{s['fruit_count_gt']}" if "fruit_count" in s else "-"
         occupancy = f"{s['occupancy_iou']:6.3f}" if s.get("occupancy_iou") is not None else f"{'-':>6}"
         print(f"{name:28} {text} {s.get('steps') or '-':>6} {s.get('render_64_ms') or float('nan'):8.1f} "
-              f"{s.get('train_peak_memory_mb') or float('nan'):7.0f} {occupancy} {fruit:>8}")
+              f"{s.get('train_peak_memory_mb') or float('nan'):7.0f} {occupancy} {fruit:>8} "
+              f"{(s.get('cache_bytes') or float('nan')) / 1e6:8.1f}")
 
 
 def pareto_front(points: list[tuple[str, float, float]]) -> list[str]:
@@ -416,7 +469,11 @@ def main() -> int:
     scenes = args.scenes or (["orchard"] if args.quick else ["orchard", "plant"])
     settings = args.settings or (QUICK_SETTINGS if args.quick else list(SETTINGS))
 
-    configs = setting_scenes(scenes, settings, args.quick)
+    trained = [s for s in settings if not is_cache_knob(s)]
+    cache_knobs = [s for s in settings if is_cache_knob(s)]
+    if cache_knobs and CACHE_KNOB_FIELD not in trained:
+        trained.append(CACHE_KNOB_FIELD)
+    configs = setting_scenes(scenes, trained, args.quick)
     write_workdir(args.workdir, configs, "occupancy")
     targets = [f"results/{name}/{artifact}" for name in configs for artifact in ("eval", "occupancy.zarr")]
     try:
@@ -426,6 +483,9 @@ def main() -> int:
         print(f"some jobs failed: see {args.workdir / 'snakemake.log'} and {args.workdir / 'logs'}")
 
     measured = {name: setting_report(args.workdir, name) for name in configs}
+    for scene in scenes:
+        for setting in cache_knobs:
+            measured[f"{scene}-{setting}"] = distill_cache_knob(args.workdir, scene, setting)
     per_setting = built(measured)  # a failed setting keeps an earlier run's numbers, if any
     if failed := sorted(set(measured) - set(per_setting)):
         print(f"not built, left out of the report: {', '.join(failed)}")

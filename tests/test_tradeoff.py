@@ -23,3 +23,15 @@ def test_setting_names_split_at_the_setting_even_when_the_scene_has_hyphens():
     assert tradeoff.scene_and_setting("my-plant-fast") == ("my-plant", "fast")
     # a setting an earlier run measured and SETTINGS no longer lists: split at the first hyphen
     assert tradeoff.scene_and_setting("orchard-retired-knob") == ("orchard", "retired-knob")
+
+
+def test_cache_knobs_train_nothing_and_keep_their_cache_numbers():
+    # the voxel knobs change only the occupancy section: they distill the balanced field again
+    assert tradeoff.is_cache_knob("voxels-68") and tradeoff.is_cache_knob("voxels-272")
+    assert not any(tradeoff.is_cache_knob(s) for s in ("fast", "balanced", "rays-1024", "downscale-2"))
+    assert tradeoff.CACHE_KNOB_FIELD in tradeoff.SETTINGS
+    measured = {"orchard-voxels-68": {"field": "orchard-balanced", "distill_ok": True, "occupancy_iou": 0.5},
+                "orchard-voxels-272": {},  # its field was not built
+                "orchard-rays-8192": {"distill_ok": False},  # training failed
+                "orchard-fast": {"psnr": 27.9, "distill_ok": True}}
+    assert sorted(tradeoff.built(measured)) == ["orchard-fast", "orchard-voxels-68"]
