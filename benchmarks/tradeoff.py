@@ -159,10 +159,7 @@ def render_ms(srf: Path, size: int = 64, repeats: int = 5) -> float | None:
 
 def ground_truth_folder(results: Path) -> Path | None:
     """The capture's ground_truth/ that `srfpipe package` reads (recorded in images.zarr), else
-    results/<scene>/capture/ground_truth; None without one. A cache knob's results hold only its
-    occupancy.zarr: the field's setting holds its capture."""
-    if (results / "field.txt").exists():
-        results = results.parent / (results / "field.txt").read_text().strip()
+    results/<scene>/capture/ground_truth; None without one."""
     from srfpipe.sim.package import _read_ground_truth
 
     folder = _read_ground_truth(results / "images.zarr")[0] if (results / "images.zarr").exists() else None
@@ -170,13 +167,12 @@ def ground_truth_folder(results: Path) -> Path | None:
     return folder or (fallback if (fallback / "scene.json").exists() else None)
 
 
-def occupancy_iou(results: Path) -> dict:
+def occupancy_iou(results: Path, folder: Path | None) -> dict:
     """occupancy_iou (mean) and occupancy_iou_classes: per class of occupancy.zarr that has a
     ground-truth mesh (ground_truth/meshes/<class>.ply), the IoU of benchmarks/occupancy.py's
-    class_accuracy; {} without a cache, ground truth or such a class."""
+    class_accuracy against the ground truth in `folder`; {} without a cache, ground truth or such a class."""
     from srfpipe.occupancy import OccupancyCache
 
-    folder = ground_truth_folder(results)
     if folder is None or not (results / "occupancy.zarr").exists():
         return {}
     cache = OccupancyCache.load(results / "occupancy.zarr")
@@ -198,7 +194,7 @@ def scene_options(workdir: Path, name: str, section: str) -> dict:
     return load_scene(path)[section] if path.exists() else section_defaults(section)
 
 
-def fruit_counts(results: Path, options: dict) -> dict:
+def fruit_counts(results: Path, folder: Path | None, options: dict) -> dict:
     """The simulator package's fruit instances against the ground truth, without building sim/: as
     `srfpipe package` (srfpipe.sim.package.package) does for scene.json's ground_truth, each reach
     class of occupancy.zarr goes through find_instances and match_ground_truth (`options`: the scene's
@@ -208,7 +204,6 @@ def fruit_counts(results: Path, options: dict) -> dict:
     from srfpipe.occupancy.grid import VoxelGrid
     from srfpipe.sim.package import reach_instances
 
-    folder = ground_truth_folder(results)
     if folder is None or not (results / "occupancy.zarr").exists():
         return {}
     group = open_artifact(results / "occupancy.zarr", stage="distill")
@@ -227,11 +222,14 @@ def fruit_counts(results: Path, options: dict) -> dict:
             "fruit_matched": matched, "fruit_centroid_err": error / matched if matched else None}
 
 
-def ground_truth_columns(workdir: Path, name: str) -> dict:
-    """The columns measured against the capture's ground truth from the setting's occupancy.zarr."""
-    results = workdir / "results" / name
-    field = (results / "field.txt").read_text().strip() if (results / "field.txt").exists() else name
-    return {**occupancy_iou(results), **fruit_counts(results, scene_options(workdir, field, "sim"))}
+def ground_truth_columns(workdir: Path, name: str, field: str | None = None) -> dict:
+    """The columns measured against the capture's ground truth from the setting's occupancy.zarr;
+    the capture and the sim options are those of the setting that trained the field (`field`, by
+    default the setting itself: a cache knob's results hold only its occupancy.zarr)."""
+    results, field = workdir / "results" / name, field or name
+    folder = ground_truth_folder(workdir / "results" / field)
+    options = scene_options(workdir, field, "sim")
+    return {**occupancy_iou(results, folder), **fruit_counts(results, folder, options)}
 
 
 def setting_report(workdir: Path, name: str) -> dict:
@@ -259,9 +257,9 @@ def setting_report(workdir: Path, name: str) -> dict:
     return report
 
 
-def cache_columns(workdir: Path, name: str) -> dict:
+def cache_columns(workdir: Path, name: str, field: str | None = None) -> dict:
     """distill_ok; with a cache, its bytes on disk against the dense grid's, its voxels and the
-    columns measured against the capture's ground truth."""
+    columns measured against the capture's ground truth (ground_truth_columns)."""
     from srfpipe.artifacts import read_provenance
 
     cache = workdir / "results" / name / "occupancy.zarr"
@@ -270,7 +268,7 @@ def cache_columns(workdir: Path, name: str) -> dict:
     info = read_provenance(cache)
     return {"distill_ok": True, "cache_bytes": info.get("bytes_on_disk"), "dense_bytes": info.get("dense_bytes"),
             "voxels_across": info.get("resolution", {}).get("voxels_across"),
-            "voxel_size": info.get("grid", {}).get("voxel_size"), **ground_truth_columns(workdir, name)}
+            "voxel_size": info.get("grid", {}).get("voxel_size"), **ground_truth_columns(workdir, name, field)}
 
 
 def distill_cache_knob(workdir: Path, scene: str, setting: str) -> dict:
@@ -282,7 +280,6 @@ def distill_cache_knob(workdir: Path, scene: str, setting: str) -> dict:
     if not (source / "srf.zarr").exists():
         return {}
     results.mkdir(parents=True, exist_ok=True)
-    (results / "field.txt").write_text(field + "\n")
     log = workdir / "logs" / f"{scene}-{setting}" / "distill.log"
     log.parent.mkdir(parents=True, exist_ok=True)
     srfpipe = Path(sys.executable).parent / "srfpipe"
@@ -295,7 +292,7 @@ def distill_cache_knob(workdir: Path, scene: str, setting: str) -> dict:
     if done.returncode:
         print(f"{scene}-{setting}: distill failed, see {log}")
         return {}
-    return {"field": field, "distill_seconds": time.perf_counter() - start, **cache_columns(workdir, f"{scene}-{setting}")}
+    return {"field": field, "distill_seconds": time.perf_counter() - start, **cache_columns(workdir, f"{scene}-{setting}", field)}
 
 
 def backfill(workdir: Path) -> int:
