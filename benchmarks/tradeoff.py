@@ -249,6 +249,9 @@ def setting_report(workdir: Path, name: str) -> dict:
         report["train_seconds"] = info.get("train_seconds")
         report["steps"] = info.get("iterations_done")
         report["train_config"] = info.get("config")
+        # a partial run merges its rows into an earlier run's: each row says when, and by which code
+        report["trained_at"] = info.get("created")
+        report["srfpipe_commit"] = (info.get("versions") or {}).get("srfpipe_commit")
     report["train_wall_seconds"] = rule_seconds(workdir, name, "train")
     report["train_peak_memory_mb"] = peak_memory_mb(workdir, name, "train")
     report["render_64_ms"] = render_ms(srf)
@@ -488,17 +491,15 @@ def main() -> int:
         print(f"not built, left out of the report: {', '.join(failed)}")
     overrides = {s: SETTINGS[s] for s in settings}
     path = result_path("tradeoff", args.quick)
-    notes = {}
     if path.exists() and (args.settings or args.scenes):
         # a partial run (some settings or scenes) updates those entries and keeps the others
         earlier = json.loads(path.read_text())
         per_setting = {**built(earlier.get("settings", {})), **per_setting}
         overrides = {**earlier.get("overrides", {}), **overrides}
         scenes = sorted(set(earlier.get("scenes", [])) | set(scenes))
-        notes = {"note": earlier["note"]} if earlier.get("note") else {}
     report = {"settings": per_setting, "overrides": overrides, "workflow_seconds": seconds,
               "machine": machine_info(quick=args.quick), "scenes": scenes,
-              "presets": preset_summary(per_setting), "pareto": pareto_fronts(per_setting), **notes}
+              "presets": preset_summary(per_setting), "pareto": pareto_fronts(per_setting)}
     suffix = "_quick" if args.quick else ""
     pareto_plot(per_setting, REPO / "benchmarks" / "results" / f"tradeoff{suffix}.png")
     write_result(path, report)

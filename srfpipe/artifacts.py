@@ -17,9 +17,11 @@ from __future__ import annotations
 
 import datetime as _dt
 import errno
+import functools
 import os
 import shutil
 import socket
+import subprocess
 import sys
 import uuid
 from contextlib import contextmanager
@@ -38,11 +40,35 @@ class ArtifactError(RuntimeError):
     """An artifact is missing, incomplete, of the wrong stage or of an unknown schema version."""
 
 
+@functools.lru_cache(maxsize=1)
+def source_commit() -> str | None:
+    """The git commit of the srfpipe source this process runs, "+dirty" when the package's tracked
+    files differ from it; None outside a git checkout (an installed wheel). A version number alone
+    cannot tell two builds of the same development version apart, and benchmark rows that were
+    measured in different runs are compared by it."""
+    package = Path(__file__).resolve().parent
+    try:
+        def git(*args: str) -> str:
+            return subprocess.run(["git", "-C", str(package), *args], capture_output=True, text=True,
+                                  timeout=10, check=True).stdout.strip()
+
+        top = Path(git("rev-parse", "--show-toplevel")).resolve()
+        if package.parent != top:  # srfpipe inside some other repository (e.g. a site-packages in one)
+            return None
+        commit = git("rev-parse", "--short=12", "HEAD")
+        dirty = git("status", "--porcelain", "--untracked-files=no", "--", str(package))
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return commit + ("+dirty" if dirty else "")
+
+
 def package_versions() -> dict[str, str]:
     """Versions of srfpipe and of the heavy libraries this process has imported."""
     from srfpipe import __version__
 
     versions = {"srfpipe": __version__, "python": sys.version.split()[0]}
+    if commit := source_commit():
+        versions["srfpipe_commit"] = commit
     for name in _VERSIONED_PACKAGES:
         module = sys.modules.get(name)
         if module is not None:

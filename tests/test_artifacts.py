@@ -1,8 +1,12 @@
 """Artifacts are written atomically and carry provenance."""
 
+import subprocess
+from pathlib import Path
+
 import numpy as np
 import pytest
 
+import srfpipe
 from srfpipe.artifacts import ArtifactError, create_artifact, open_artifact, read_provenance
 
 
@@ -15,6 +19,19 @@ def test_artifact_round_trip_with_provenance(tmp_path):
     assert meta["complete"] and meta["stage"] == "demo" and meta["config"] == {"factor": 4}
     assert meta["versions"]["srfpipe"] and meta["inputs"][0]["path"].endswith("raw")
     np.testing.assert_array_equal(group["x"][:], np.arange(6).reshape(2, 3))
+
+
+def test_provenance_names_the_source_commit(tmp_path):
+    """Two builds of the same development version differ by their commit: the artifact says which."""
+    repo = Path(srfpipe.__file__).resolve().parent.parent
+    head = subprocess.run(["git", "-C", str(repo), "rev-parse", "--short=12", "HEAD"], capture_output=True, text=True)
+    if head.returncode != 0:
+        pytest.skip("srfpipe is not running from a git checkout")
+    path = tmp_path / "a.zarr"
+    with create_artifact(path, "demo", config={}, inputs=[]) as group:
+        group.create_array("x", data=np.zeros(1))
+    commit = read_provenance(path)["versions"]["srfpipe_commit"]
+    assert commit.split("+")[0] == head.stdout.strip() and commit in (head.stdout.strip(), head.stdout.strip() + "+dirty")
 
 
 def test_interrupted_stage_leaves_nothing(tmp_path):
