@@ -150,7 +150,8 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
     with atomic_directory(out) as tmp:
         (tmp / "renders").mkdir()
         for index in heldout:
-            pose_world = world_from_scene_pose(field.world_from_scene, data.poses_scene[index].numpy())
+            # the views' own frame: a field trained on other labels of the same capture has another
+            pose_world = world_from_scene_pose(data.world_from_scene, data.poses_scene[index].numpy())
             result = field.render(pose_world, data.intrinsics[index].numpy(), data.width, data.height, supersample)
             target = data.images[index].numpy().astype(np.float64) / 255.0
             err = (result["rgb"].astype(np.float64) - target) ** 2

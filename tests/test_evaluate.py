@@ -102,3 +102,17 @@ def test_supersampling_is_on_for_small_views_and_measurably_changes_the_render(s
     assert saved["supersample"] == 2
     # against centre-rendered images the area mean differs at the sphere's edges only
     assert 25 < saved["psnr"] < 45
+
+
+def test_a_field_from_other_labels_of_the_same_capture_sees_the_views_where_they_are(scene):
+    """The views' poses go to the world through their own scene frame, not the field's: a field
+    trained on other labels of the capture (another mask hull, another normalization; or another
+    image size, as benchmarks/captures.py's reference views) still renders the same cameras."""
+    folder, images, labels = scene
+    data = load_posed_images(images, labels)
+    field = ExactField(images, data.classes)
+    other_frame = np.diag([2.0, 2.0, 2.0, 1.0])
+    other_frame[:3, 3] = (0.3, -0.2, 0.5)
+    field.world_from_scene = other_frame @ field.world_from_scene  # the field's own frame differs
+    saved = evaluate_field(field, data, folder / "eval_other_frame", CENTRES, labels, "exact")
+    assert saved["psnr"] > 45 and saved["miou_gt"] > 0.9
