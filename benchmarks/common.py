@@ -6,6 +6,7 @@ The scripts import this as `common` (`python benchmarks/NAME.py` puts benchmarks
 
 from __future__ import annotations
 
+import copy
 import csv
 import json
 import os
@@ -30,6 +31,29 @@ def write_workdir(workdir: Path, scenes: dict[str, dict], final_artifact: str) -
     (workdir / "config" / "config.yaml").write_text(yaml.safe_dump(
         {"scenes_dir": "config/scenes", "scenes": list(scenes), "results_dir": "results",
          "final_artifact": final_artifact}, sort_keys=False))
+
+
+def merge(base: dict, overrides: dict) -> dict:
+    """A copy of the scene config `base` with `overrides` (section by section) on top."""
+    scene = copy.deepcopy(base)
+    for key, value in overrides.items():
+        if isinstance(value, dict):
+            scene[key] = {**scene.get(key, {}), **value}
+        else:
+            scene[key] = value
+    return scene
+
+
+def renamed_paths(value, old: str, new: str):
+    """The scene with paths into its own results (the plant's imported ground-truth masks) moved
+    to another scene's results folder, which is where that scene's capture is generated."""
+    if isinstance(value, dict):
+        return {k: renamed_paths(v, old, new) for k, v in value.items()}
+    if isinstance(value, list):
+        return [renamed_paths(v, old, new) for v in value]
+    if isinstance(value, str) and value.startswith(old):
+        return new + value[len(old):]
+    return value
 
 
 def snakemake_env() -> dict:

@@ -24,7 +24,6 @@ Writes benchmarks/results/tradeoff.json and tradeoff.png (quality against traini
 from __future__ import annotations
 
 import argparse
-import copy
 import csv
 import json
 import subprocess
@@ -35,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from common import REPO, machine_info, result_path, rule_seconds, run_workflow, write_result, write_workdir
+from common import REPO, machine_info, merge, renamed_paths, result_path, rule_seconds, run_workflow, write_result, write_workdir
 from occupancy import MESH_CLASSES, class_accuracy
 
 # name -> (scene overrides). Presets first, then one knob at a time against `balanced`.
@@ -70,16 +69,6 @@ def is_cache_knob(setting: str) -> bool:
     return set(SETTINGS.get(setting, {})) == {"occupancy"}
 
 
-def merge(base: dict, overrides: dict) -> dict:
-    scene = copy.deepcopy(base)
-    for key, value in overrides.items():
-        if isinstance(value, dict):
-            scene[key] = {**scene.get(key, {}), **value}
-        else:
-            scene[key] = value
-    return scene
-
-
 def setting_scenes(scenes: list[str], settings: list[str], quick: bool) -> dict[str, dict]:
     out = {}
     for scene_name in scenes:
@@ -91,18 +80,6 @@ def setting_scenes(scenes: list[str], settings: list[str], quick: bool) -> dict[
             name = f"{scene_name}-{setting}"
             out[name] = renamed_paths(scene, f"results/{scene_name}/", f"results/{name}/")
     return out
-
-
-def renamed_paths(value, old: str, new: str):
-    """The scene with paths into its own results (the plant's imported ground-truth masks) moved
-    to the setting's results folder, which is where the setting's capture is generated."""
-    if isinstance(value, dict):
-        return {k: renamed_paths(v, old, new) for k, v in value.items()}
-    if isinstance(value, list):
-        return [renamed_paths(v, old, new) for v in value]
-    if isinstance(value, str) and value.startswith(old):
-        return new + value[len(old):]
-    return value
 
 
 def scene_and_setting(name: str) -> tuple[str, str]:

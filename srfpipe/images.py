@@ -31,6 +31,20 @@ def target_size(width: int, height: int, factor: float) -> tuple[int, int]:
     return max(1, int(round(width / factor))), max(1, int(round(height / factor)))
 
 
+DOWNSCALE_CHOICES = (1, 2, 4)
+
+
+def default_downscale(image_sizes, max_pixels: int) -> int:
+    """The finest factor of DOWNSCALE_CHOICES at which all frames together hold at most `max_pixels`
+    pixels, else the coarsest. A few views keep their detail; many views are as many rays as a run
+    can fit at the coarsest factor already."""
+    for factor in DOWNSCALE_CHOICES:
+        total = sum(w * h for w, h in (target_size(int(w), int(h), factor) for w, h in image_sizes))
+        if total <= max_pixels:
+            return factor
+    return DOWNSCALE_CHOICES[-1]
+
+
 def opencv_camera_matrix(intrinsics) -> np.ndarray:
     """K in OpenCV's pixel frame, where pixel centres are integers (ours are at +0.5)."""
     fx, fy, cx, cy = (float(v) for v in intrinsics)
@@ -227,7 +241,6 @@ def downscale_images(poses_path: str | Path, options: dict, out: str | Path, pro
     from srfpipe.artifacts import create_artifact, meta, open_artifact, update_attrs
 
     options = validate_scene({"images": dict(options)}, "images options")["images"]
-    factor = float(options["downscale"])
     poses = open_artifact(poses_path, stage="poses")
     info = meta(poses)
     root = Path(info["capture_root"])
@@ -236,6 +249,12 @@ def downscale_images(poses_path: str | Path, options: dict, out: str | Path, pro
     distortion = poses["distortion"][:]
     image_size = poses["image_size"][:]
     n = len(image_paths)
+    if options["downscale"] is None:
+        factor = float(default_downscale(image_size, options["max_pixels"]))
+        log.info("images.downscale %g: the finest of %s at which the %d frames hold at most %d pixels "
+                 "(images.max_pixels)", factor, DOWNSCALE_CHOICES, n, options["max_pixels"])
+    else:
+        factor = float(options["downscale"])
 
     sizes = [target_size(w, h, factor) for w, h in image_size]
     width, height = sizes[0]
@@ -252,7 +271,8 @@ def downscale_images(poses_path: str | Path, options: dict, out: str | Path, pro
     gt_files = _ground_truth_files(ground_truth, image_paths) if ground_truth else None
     gt_classes = _ground_truth_classes(ground_truth) if gt_files and "labels" in gt_files else None
 
-    config = {"images": options}
+    # the factor used, and where it came from: the options as given say null when it was derived
+    config = {"images": {**options, "downscale": factor}, "downscale_from": "max_pixels" if options["downscale"] is None else "config"}
     with create_artifact(out, "downscale", config=config, inputs=[str(poses_path)]) as group:
         images = group.create_array("images", shape=(n, height, width, 3), chunks=(1, height, width, 3),
                                     dtype="uint8", dimension_names=("image", "y", "x", "c"))

@@ -8,7 +8,7 @@ from srfpipe.config import ConfigError, load_scene, section_defaults, validate_s
 def test_defaults_are_filled_in_and_not_shared():
     a = validate_scene({})
     b = validate_scene({})
-    assert a["images"]["downscale"] == 4
+    assert a["images"]["downscale"] is None  # from the capture (srfpipe.images.default_downscale)
     assert a["segmentation"]["prompts"] == ["apple", "branch", "leaf"]
     a["orchard"]["ring_heights"].append(9.0)
     assert b["orchard"]["ring_heights"] != a["orchard"]["ring_heights"]

@@ -12,7 +12,8 @@ import pytest
 
 from srfpipe import cameras
 from srfpipe.artifacts import meta, open_artifact
-from srfpipe.images import downscale_images, exif_orientation, read_rgb
+from srfpipe.config import validate_scene
+from srfpipe.images import default_downscale, downscale_images, exif_orientation, read_rgb
 from srfpipe.poses import import_poses, load_capture
 from test_poses import edit_transforms, ring, write_nerfstudio
 
@@ -38,6 +39,30 @@ def test_downscale_size_intrinsics_and_pixels(tmp_path):
     np.testing.assert_array_equal(group["images"][2], expected)  # RGB order, INTER_AREA
     poses_info = meta(open_artifact(tmp_path / "poses.zarr"))
     assert info["scene_from_world"] == poses_info["scene_from_world"]
+
+
+@pytest.mark.parametrize("frames, expected", [(4, 1), (16, 2), (64, 4), (300, 4)])
+def test_null_downscale_keeps_the_detail_of_a_few_views(tmp_path, frames, expected):
+    """images.downscale null: the finest of 1, 2, 4 whose pixels, all frames together, stay within
+    images.max_pixels; never coarser than 4. Few views keep their resolution, many are shrunk."""
+    capture = write_nerfstudio(tmp_path / "cap", ring(frames), width=64, height=48,
+                               intrinsics=(60.0, 60.0, 32.0, 24.0))
+    budget = 16 * 64 * 48 // 4  # 16 frames at factor 2
+    out = downscale_images(poses_zarr(tmp_path, capture), {"downscale": None, "max_pixels": budget},
+                           tmp_path / "images.zarr", progress=False)
+    info = meta(open_artifact(out, stage="downscale"))
+    assert info["downscale"] == expected and (info["width"], info["height"]) == (64 // expected, 48 // expected)
+    assert info["config"]["images"]["downscale"] == expected and info["config"]["downscale_from"] == "max_pixels"
+
+
+def test_the_captures_this_project_measures_keep_their_factors():
+    """The default budget, on the captures of benchmarks/captures.py: the orchard (80 frames of
+    640 x 480) and the fox (50 of 1080 x 1920) stay at 4, the plant (18 of 512 x 512) keeps twice
+    the resolution."""
+    budget = validate_scene({})["images"]["max_pixels"]
+    assert default_downscale([(640, 480)] * 80, budget) == 4
+    assert default_downscale([(1080, 1920)] * 50, budget) == 4
+    assert default_downscale([(512, 512)] * 18, budget) == 2
 
 
 def test_non_integer_factor_scales_intrinsics_by_actual_ratio(tmp_path):
