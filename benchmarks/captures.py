@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -112,8 +111,7 @@ def reference_report(workdir: Path, name: str) -> dict:
     stage, into results/<name>/eval-reference)."""
     results, reference = workdir / "results" / name, workdir / "results" / f"{name}-reference"
     out = results / "eval-reference"
-    srfpipe = Path(sys.executable).parent / "srfpipe"
-    run_command([str(srfpipe), "evaluate", "--images", str(reference / "images.zarr"), "--labels",
+    run_command(["srfpipe", "evaluate", "--images", str(reference / "images.zarr"), "--labels",
                  str(reference / "labels.zarr"), "--srf", str(results / "srf.zarr"), "--out", str(out),
                  "--scene", str(workdir / "config" / "scenes" / f"{name}.yaml")],
                 log=workdir / "logs" / name / "evaluate-reference.log")

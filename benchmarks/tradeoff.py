@@ -27,14 +27,13 @@ import argparse
 import csv
 import json
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import yaml
 
-from common import REPO, machine_info, merge, renamed_paths, result_path, rule_seconds, run_workflow, write_result, write_workdir
+from common import REPO, machine_info, merge, renamed_paths, result_path, rule_seconds, run_command, run_workflow, write_result, write_workdir
 from occupancy import MESH_CLASSES, class_accuracy
 
 # name -> (scene overrides). Presets first, then one knob at a time against `balanced`.
@@ -261,18 +260,16 @@ def distill_cache_knob(workdir: Path, scene: str, setting: str) -> dict:
         return {}
     results.mkdir(parents=True, exist_ok=True)
     log = workdir / "logs" / f"{scene}-{setting}" / "distill.log"
-    log.parent.mkdir(parents=True, exist_ok=True)
-    srfpipe = Path(sys.executable).parent / "srfpipe"
-    command = [str(srfpipe), "distill", "--srf", str(source / "srf.zarr"), "--no-progress",
+    log.unlink(missing_ok=True)  # run_command appends
+    command = ["srfpipe", "distill", "--srf", str(source / "srf.zarr"), "--no-progress",
                "--scene", str(workdir / "config" / "scenes" / f"{field}.yaml"),
                "--options", json.dumps(SETTINGS[setting]["occupancy"]), "--out", str(results / "occupancy.zarr")]
-    start = time.perf_counter()
-    with log.open("w") as handle:
-        done = subprocess.run(command, stdout=handle, stderr=subprocess.STDOUT)
-    if done.returncode:
+    try:
+        seconds = run_command(command, log)
+    except subprocess.CalledProcessError:
         print(f"{scene}-{setting}: distill failed, see {log}")
         return {}
-    return {"field": field, "distill_seconds": time.perf_counter() - start, **cache_columns(workdir, f"{scene}-{setting}", field)}
+    return {"field": field, "distill_seconds": seconds, **cache_columns(workdir, f"{scene}-{setting}", field)}
 
 
 def backfill(workdir: Path) -> int:

@@ -113,8 +113,9 @@ def default_supersample(width: int, height: int, asked: int | None) -> int:
 def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) -> dict:
     """Metrics and renders of `field` on the held-out views of `data` (`PosedImages`), into `out`.
 
-    `field` needs `classes`, `attrs` (holdout_every, train_seconds), `world_from_scene` and
-    `render(camera_to_world, intrinsics, width, height)` like `SemanticRadianceField`; `labels`
+    `field` needs `classes`, `attrs` (holdout_every, train_seconds) and
+    `render(camera_to_world, intrinsics, width, height)` like `SemanticRadianceField` (the views go
+    to the world through `data`'s own scene frame, so a field of another build measures them too); `labels`
     and `srf` are the paths the data and the field came from (for messages and the record).
     `curves`, srf.zarr's (curve, eval_curve), adds the training curve (`training_curve.svg`).
     """
