@@ -174,9 +174,9 @@ def main() -> int:
                 per_scene[name]["reference"] = reference_report(args.workdir, name)
     previous_file = result_path("captures", args.quick)
     measured_now = sorted(per_scene)
-    if previous_file.exists():  # a run of some scenes keeps the others' last measurement
-        previous = json.loads(previous_file.read_text()).get("scenes", {})
-        per_scene = {**earlier_measurements(previous, per_scene), **per_scene}
+    previous_report = json.loads(previous_file.read_text()) if previous_file.exists() else {}
+    # a run of some scenes keeps the others' last measurement
+    per_scene = {**earlier_measurements(previous_report.get("scenes", {}), per_scene), **per_scene}
     report: dict = {"scenes": per_scene, "measured_now": measured_now, "workflow_seconds": seconds,
                     "machine": machine_info(quick=args.quick), "scene_configs": scenes}
     fox, plant, orchard = (per_scene.get(n, {}) for n in ("fox", "plant", "orchard"))
@@ -191,8 +191,12 @@ def main() -> int:
         "orchard_psnr": orchard.get("psnr"), "orchard_miou": orchard.get("miou_gt"),
         "distill_ok": {name: s.get("distill_ok") for name, s in per_scene.items()},
     })
-    if plant.get("bounds"):
-        truth = json.loads((results / "plant" / "capture" / "ground_truth" / "scene.json").read_text())
+    truth_file = results / "plant" / "capture" / "ground_truth" / "scene.json"
+    if "plant" not in measured_now:  # its ground truth may not be in this work directory
+        report.update({k: previous_report[k] for k in ("thin_bounds_ratio", "thin_bounds_ratio_poses")
+                       if k in previous_report})
+    elif plant.get("bounds"):
+        truth = json.loads(truth_file.read_text())
         report["thin_bounds_ratio"] = box_volume(plant["bounds"]["box"]) / box_volume(truth["object_bounds_world"])
         report["thin_bounds_ratio_poses"] = box_volume(plant["bounds"]["poses_box"]) / box_volume(
             truth["object_bounds_world"])
