@@ -315,7 +315,7 @@ def backfill(workdir: Path) -> int:
 
 
 def preset_summary(per_setting: dict) -> dict:
-    """Each preset on the orchard: the issue's keys."""
+    """Each preset on the orchard: the issue's keys; `paper`, a GPU run, with its CPU time estimated."""
     summary = {}
     for name, r in per_setting.items():
         scene, setting = scene_and_setting(name)
@@ -323,7 +323,27 @@ def preset_summary(per_setting: dict) -> dict:
             summary[setting] = {"psnr": r.get("psnr"), "psnr_object": r.get("psnr_object"), "miou": r.get("miou_gt"),
                                 "train_seconds": r.get("train_seconds"), "occupancy_iou": r.get("occupancy_iou"),
                                 "fruit_count_error": r.get("fruit_count_error")}
+    if "paper" not in summary and (estimate := paper_cpu_estimate()):
+        summary["paper"] = estimate
     return summary
+
+
+def paper_cpu_estimate() -> dict | None:
+    """Why `paper` has no measurement here: its iterations of the hash grid at the speed that
+    benchmarks/train.py measured for the hash grid on the orchard, on this machine (4096 rays, as
+    the paper); None when train.json or its hash curve is missing."""
+    train_file = REPO / "benchmarks" / "results" / "train.json"
+    iterations = yaml.safe_load((REPO / "workflow" / "schemas" / "presets.yaml").read_text())["paper"]["train"]["iterations"]
+    try:
+        curve = json.loads(train_file.read_text())["curves"]["hash"]
+        steps, seconds = float(curve["step"][-1]), float(curve["seconds"][-1])
+    except (OSError, KeyError, IndexError, ValueError):
+        return None
+    hours = iterations / (steps / seconds) / 3600.0
+    return {"measured": False, "iterations": iterations, "cpu_hours_estimate": hours,
+            "why": f"a GPU setting: {iterations} steps of the hash grid at {steps / seconds:.2f} steps/s "
+                   f"(train.json: {steps:.0f} steps in {seconds:.0f} s on the orchard, these 2 cores) "
+                   f"would train for about {hours / 24:.1f} days"}
 
 
 def print_table(per_setting: dict) -> None:

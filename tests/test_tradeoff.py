@@ -35,3 +35,14 @@ def test_cache_knobs_train_nothing_and_keep_their_cache_numbers():
                 "orchard-rays-8192": {"distill_ok": False},  # training failed
                 "orchard-fast": {"psnr": 27.9, "distill_ok": True}}
     assert sorted(tradeoff.built(measured)) == ["orchard-fast", "orchard-voxels-68"]
+
+
+def test_every_preset_has_an_orchard_entry_and_the_paper_gpu_run_says_why_it_has_no_measurement():
+    per_setting = {"orchard-fast": {"psnr": 28.0, "psnr_object": 25.0, "miou_gt": 0.8, "train_seconds": 300.0},
+                   "plant-balanced": {"psnr": 29.0, "train_seconds": 600.0}}  # not the orchard: no entry
+    summary = tradeoff.preset_summary(per_setting)
+    assert summary["fast"]["psnr"] == 28.0 and summary["fast"]["miou"] == 0.8 and "balanced" not in summary
+    # the paper's 500k hash-grid iterations at the committed train.json's CPU speed: days, not minutes
+    paper = summary["paper"]
+    assert paper["measured"] is False and paper["iterations"] == 500000
+    assert paper["cpu_hours_estimate"] > 24 and "GPU" in paper["why"]
