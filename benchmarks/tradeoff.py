@@ -332,8 +332,10 @@ def paper_cpu_estimate() -> dict | None:
     """Why `paper` has no measurement here: its iterations of the hash grid at the speed that
     benchmarks/train.py measured for the hash grid on the orchard, on this machine (4096 rays, as
     the paper); None when train.json or its hash curve is missing."""
+    from srfpipe.config import load_schema
+
     train_file = REPO / "benchmarks" / "results" / "train.json"
-    iterations = yaml.safe_load((REPO / "workflow" / "schemas" / "presets.yaml").read_text())["paper"]["train"]["iterations"]
+    iterations = load_schema("presets.yaml")["paper"]["train"]["iterations"]
     try:
         curve = json.loads(train_file.read_text())["curves"]["hash"]
         steps, seconds = float(curve["step"][-1]), float(curve["seconds"][-1])
