@@ -24,6 +24,7 @@ from srfpipe.poses import (
     read_colmap,
     read_nerfstudio,
 )
+from srfpipe.poses.colmap_refine import pairs_from_poses
 
 # ----------------------------------------------------------------------------- synthetic captures
 
@@ -553,17 +554,37 @@ def write_box_corner_capture(root: Path, views=12, width=320, height=240) -> np.
     return poses
 
 
-def test_colmap_refinement_repairs_perturbed_poses(tmp_path):
+def test_pairs_from_poses_keeps_the_views_that_can_match():
+    ring = [look_at([3 * np.cos(a), 3 * np.sin(a), 0.5], [0, 0, 0]) for a in np.radians(np.arange(0, 360, 10))]
+    up = look_at([3.0, 0.1, 0.5], [3.1, 0.1, 10.0])  # beside camera 0, looking at the sky
+    pairs = pairs_from_poses(np.stack([*ring, up]), neighbours=20, max_angle_deg=30.0, min_pairs=3)
+    in_ring = [(i, j) for i, j in pairs if j < 36]
+    steps = [min(j - i, 36 - (j - i)) for i, j in in_ring]
+    # every camera meets the three on each side (10, 20, 30 degrees apart) and no one farther round
+    assert sorted(set(steps)) == [1, 2, 3] and len(in_ring) == 36 * 3
+    # the camera that shares no view direction still gets the three closest in angle
+    assert len([p for p in pairs if p[1] == 36]) == 3
+    assert len(pairs) < 37 * 36 // 2 / 5  # a fifth of the exhaustive pairs
+    # fewer neighbours: each camera keeps its nearest
+    assert {(i, j) for i, j in pairs_from_poses(np.stack(ring), neighbours=2) if j - i == 1 or (i, j) == (0, 35)} \
+        == {(i, i + 1) for i in range(35)} | {(0, 35)}
+
+
+@pytest.mark.parametrize("matcher", ["auto", "poses"])
+def test_colmap_refinement_repairs_perturbed_poses(tmp_path, matcher):
     truth = write_box_corner_capture(tmp_path / "cap")
-    options = {"refine": "colmap", "perturb_rot_deg": 1.0, "perturb_trans_frac": 0.02, "bounds": [[0, 0, 0], [2, 2, 2]]}
+    options = {"refine": "colmap", "matcher": matcher, "perturb_rot_deg": 1.0, "perturb_trans_frac": 0.02,
+               "bounds": [[0, 0, 0], [2, 2, 2]]}
     out = import_poses({"format": "nerfstudio"}, tmp_path / "cap", options, tmp_path / "poses.zarr", threads=2)
     group = open_artifact(out, stage="poses")
     info = meta(group)
     stats = info["refinement"]
-    assert stats["matcher"] == "exhaustive" and stats["num_images_refined"] == 12
+    assert stats["matcher"] == ("exhaustive" if matcher == "auto" else "poses") and stats["num_images_refined"] == 12
+    perturbed = perturb_poses(truth, 1.0, 0.02 * 2.0, seed=0)  # what the stage refined
+    # 12 views over 72 degrees: pairs from the (given) poses skip those more than 30 degrees apart
+    assert stats["pairs_matched"] == (66 if matcher == "auto" else len(pairs_from_poses(perturbed))) >= 44
     assert stats["reprojection_error_after_px"] < 0.5 < stats["reprojection_error_before_px"]
     assert stats["num_points3D"] > 200 and group["points_world"].shape == (stats["num_points3D"], 3)
-    perturbed = perturb_poses(truth, 1.0, 0.02 * 2.0, seed=0)  # what the stage refined
     before = pose_errors(perturbed, truth, scene_size=2.0)
     after = pose_errors(group["camera_to_world"][:], truth, scene_size=2.0)
     assert after["rot_err_deg"] < 0.25 * before["rot_err_deg"]

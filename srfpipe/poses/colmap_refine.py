@@ -5,8 +5,10 @@ intrinsics held fixed), so this is "point triangulator + bundle adjuster", not S
 
 1. SIFT features for every image (`pycolmap.extract_features`) into a temporary database that
    already holds our cameras, rigs, frames and images with the reconstruction's ids.
-2. Matching: exhaustive for small captures, otherwise spatial (nearest camera centres, from the
-   known poses written as pose priors) or sequential (neighbours in capture order).
+2. Matching: exhaustive for small captures, otherwise the pairs that the known poses say can
+   match (`pairs_from_poses`: nearest cameras whose views point the same way, as hloc's
+   pairs_from_poses), or spatial (nearest camera centres only, written as pose priors) or
+   sequential (neighbours in capture order) when asked for.
 3. Triangulation from the given poses (`pycolmap.triangulate_points`). Thresholds are loose in
    the first pass, because the given poses may be off by a degree or more.
 4. Bundle adjustment of poses and points (robust Cauchy loss, intrinsics fixed), outlier
@@ -38,8 +40,11 @@ from srfpipe.poses.capture import Capture
 
 log = logging.getLogger(__name__)
 
-EXHAUSTIVE_MAX_IMAGES = 60  # 'auto' matcher: all pairs up to this many images (~1.8k pairs)
+EXHAUSTIVE_MAX_IMAGES = 20  # 'auto' matcher: all pairs up to this many images (190 pairs)
 SPATIAL_NEIGHBOURS = 20
+POSES_NEIGHBOURS = 20  # 'poses' matcher: nearest cameras per image ...
+POSES_MAX_ANGLE_DEG = 30.0  # ... whose optical axes differ by less: SIFT seldom matches across more
+POSES_MIN_PAIRS = 3  # an image with fewer cameras inside the angle takes the closest in angle
 SEQUENTIAL_OVERLAP = 15
 LOOSE_ANGLE_DEG = 8.0  # first triangulation: the given poses may be this far off
 LOOSE_REPROJ_PX = 24.0
@@ -56,10 +61,37 @@ class RefinementResult:
 
 
 def choose_matcher(matcher: str, n_images: int) -> str:
-    """'auto' -> exhaustive for small captures, spatial (the poses are known) otherwise."""
+    """'auto' -> exhaustive for small captures, pairs from the known poses otherwise."""
     if matcher != "auto":
         return matcher
-    return "exhaustive" if n_images <= EXHAUSTIVE_MAX_IMAGES else "spatial"
+    return "exhaustive" if n_images <= EXHAUSTIVE_MAX_IMAGES else "poses"
+
+
+def pairs_from_poses(camera_to_world: np.ndarray, neighbours: int = POSES_NEIGHBOURS,
+                     max_angle_deg: float = POSES_MAX_ANGLE_DEG, min_pairs: int = POSES_MIN_PAIRS) -> list[tuple[int, int]]:
+    """Image pairs (i < j) worth matching, chosen from known poses (OpenCV cameras, +z looks forward).
+
+    Each image pairs with its `neighbours` nearest camera centres among the cameras whose optical
+    axis is within `max_angle_deg` of its own; an image with fewer than `min_pairs` such cameras
+    takes the `min_pairs` closest in angle instead. Exhaustive matching spends most of its time
+    on pairs that look at the scene from too far apart for SIFT to match: on the fox capture
+    (50 images), 416 of its 1225 pairs are within 30 degrees.
+    """
+    n = len(camera_to_world)
+    centres = camera_to_world[:, :3, 3]
+    axes = camera_to_world[:, :3, 2] / np.linalg.norm(camera_to_world[:, :3, 2], axis=1, keepdims=True)
+    angle = np.degrees(np.arccos(np.clip(axes @ axes.T, -1.0, 1.0)))
+    distance = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
+    np.fill_diagonal(angle, np.inf)
+    pairs: set[tuple[int, int]] = set()
+    for i in range(n):
+        within = np.flatnonzero(angle[i] <= max_angle_deg)
+        if len(within) < min_pairs:
+            chosen = np.argsort(angle[i])[:min(min_pairs, n - 1)]
+        else:
+            chosen = within[np.argsort(distance[i, within], kind="stable")[:neighbours]]
+        pairs.update((min(i, int(j)), max(i, int(j))) for j in chosen)
+    return sorted(pairs)
 
 
 def _camera_model(intrinsics, distortion, size):
@@ -123,8 +155,17 @@ def _write_database(database_path: Path, reconstruction, with_pose_priors: bool)
         database.close()
 
 
-def _match(database_path: Path, matcher: str, n_images: int, scene_size: float, threads: int) -> None:
+def _write_pairs(path: Path, image_names: list[str], pairs: list[tuple[int, int]]) -> None:
+    with open(path, "w") as f:
+        for i, j in pairs:
+            f.write(f"{image_names[i]} {image_names[j]}\n")
+
+
+def _match(database_path: Path, matcher: str, camera_to_world: np.ndarray, image_names: list[str],
+           scene_size: float, threads: int) -> None:
     import pycolmap
+
+    n_images = len(image_names)
 
     options = pycolmap.FeatureMatchingOptions()
     options.num_threads = threads
@@ -133,6 +174,13 @@ def _match(database_path: Path, matcher: str, n_images: int, scene_size: float, 
     device = pycolmap.Device.cpu
     if matcher == "exhaustive":
         pycolmap.match_exhaustive(str(database_path), matching_options=options, device=device)
+    elif matcher == "poses":
+        pairs = pairs_from_poses(camera_to_world)
+        pairs_path = database_path.with_name("pairs.txt")
+        _write_pairs(pairs_path, image_names, pairs)
+        pairing = pycolmap.ImportedPairingOptions()
+        pairing.match_list_path = str(pairs_path)
+        pycolmap.match_image_pairs(str(database_path), matching_options=options, pairing_options=pairing, device=device)
     elif matcher == "sequential":
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap = min(SEQUENTIAL_OVERLAP, n_images - 1)
@@ -221,6 +269,10 @@ def refine_poses(capture: Capture, camera_to_world: np.ndarray, matcher: str = "
     if n < 2:
         raise ValueError(f"{capture.source_file}: COLMAP refinement needs at least 2 images, got {n}")
     matcher = choose_matcher(matcher, n)
+    if matcher == "poses" and any(len(name.split()) != 1 for name in capture.image_paths):
+        # COLMAP's pair list is split at spaces
+        log.warning("COLMAP: image names with spaces cannot go into a pair list; spatial matching instead")
+        matcher = "spatial"
     centres = camera_to_world[:, :3, 3]
     scene_size = max(float(np.ptp(centres, axis=0).max()), 1e-6)
     reconstruction = build_reconstruction(capture.image_paths, camera_to_world, capture.intrinsics,
@@ -246,7 +298,14 @@ def refine_poses(capture: Capture, camera_to_world: np.ndarray, matcher: str = "
         if len(no_features) == n:
             raise RuntimeError(f"{capture.root}: COLMAP found no SIFT features in any image")
         log.info("COLMAP: %s matching", matcher)
-        _match(database, matcher, n, scene_size, threads)
+        _match(database, matcher, camera_to_world, list(capture.image_paths), scene_size, threads)
+        db = pycolmap.Database.open(str(database))
+        try:
+            pairs = {"pairs_matched": int(db.num_matched_image_pairs()),
+                     "pairs_verified": int(db.num_verified_image_pairs())}
+        finally:
+            db.close()
+        log.info("COLMAP: %s", pairs)
 
         (tmp / "tri1").mkdir()
         reconstruction = pycolmap.triangulate_points(
@@ -288,6 +347,7 @@ def refine_poses(capture: Capture, camera_to_world: np.ndarray, matcher: str = "
     stats = {
         "method": "colmap",
         "matcher": matcher,
+        **pairs,
         "num_images": n,
         "num_images_refined": int(constrained.sum()),
         "images_kept_as_given": [capture.image_paths[i] for i in np.flatnonzero(~constrained)],
