@@ -162,11 +162,10 @@ def _write_pairs(path: Path, image_names: list[str], pairs: list[tuple[int, int]
 
 
 def _match(database_path: Path, matcher: str, camera_to_world: np.ndarray, image_names: list[str],
-           scene_size: float, threads: int) -> None:
+           threads: int) -> None:
     import pycolmap
 
     n_images = len(image_names)
-
     options = pycolmap.FeatureMatchingOptions()
     options.num_threads = threads
     # after RANSAC, match again along the epipolar geometry: doubles the inliers on foliage
@@ -189,7 +188,8 @@ def _match(database_path: Path, matcher: str, camera_to_world: np.ndarray, image
         pairing = pycolmap.SpatialPairingOptions()
         pairing.ignore_z = False  # positions are 3D camera centres, not GPS
         pairing.max_num_neighbors = min(SPATIAL_NEIGHBOURS, n_images - 1)
-        pairing.max_distance = 10.0 * scene_size
+        camera_spread = max(float(np.ptp(camera_to_world[:, :3, 3], axis=0).max()), 1e-6)
+        pairing.max_distance = 10.0 * camera_spread
         pycolmap.match_spatial(str(database_path), matching_options=options, pairing_options=pairing, device=device)
     else:
         raise ValueError(f"poses.matcher: unknown matcher {matcher!r}")
@@ -273,8 +273,6 @@ def refine_poses(capture: Capture, camera_to_world: np.ndarray, matcher: str = "
         # COLMAP's pair list is split at spaces
         log.warning("COLMAP: image names with spaces cannot go into a pair list; spatial matching instead")
         matcher = "spatial"
-    centres = camera_to_world[:, :3, 3]
-    scene_size = max(float(np.ptp(centres, axis=0).max()), 1e-6)
     reconstruction = build_reconstruction(capture.image_paths, camera_to_world, capture.intrinsics,
                                           capture.image_size, capture.distortion)
     if workdir_parent is not None:
@@ -298,7 +296,7 @@ def refine_poses(capture: Capture, camera_to_world: np.ndarray, matcher: str = "
         if len(no_features) == n:
             raise RuntimeError(f"{capture.root}: COLMAP found no SIFT features in any image")
         log.info("COLMAP: %s matching", matcher)
-        _match(database, matcher, camera_to_world, list(capture.image_paths), scene_size, threads)
+        _match(database, matcher, camera_to_world, list(capture.image_paths), threads)
         db = pycolmap.Database.open(str(database))
         try:
             pairs = {"pairs_matched": int(db.num_matched_image_pairs()),
