@@ -19,6 +19,8 @@ import torch
 from srfpipe.artifacts import create_artifact, meta, open_artifact
 
 FORMAT = "srfpipe-srf-1"
+# weights an older srf.zarr may lack, with the model's initial value meaning the same as their absence
+OPTIONAL_WEIGHTS = ("occupancy.seen0", "occupancy.seen1")
 
 
 def write_srf(path, model, *, config: dict, inputs: list, curve: dict, eval_curve: dict | None = None,
@@ -61,6 +63,9 @@ def read_srf(path, device="cpu"):
     state = model.state_dict()
     loaded = {}
     for key, tensor in state.items():
+        if key not in weights and key in OPTIONAL_WEIGHTS:
+            loaded[key] = tensor  # written before srfpipe marked unseen space: everything counts as seen
+            continue
         if key not in weights:
             raise ValueError(f"{path}: weights/{key} is missing")
         array = np.asarray(weights[key][...])

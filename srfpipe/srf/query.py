@@ -132,7 +132,7 @@ class SemanticRadianceField:
 
     def density(self, points_world: np.ndarray) -> np.ndarray:
         """Occupancy(x): sigma (M,) float32 per *world* unit length (scene sigma times the scene
-        scale), 0 outside the scene bounds."""
+        scale), 0 outside the scene bounds and where no training camera saw (`empty_unseen`)."""
         import torch
 
         points = _points(points_world)
@@ -141,7 +141,8 @@ class SemanticRadianceField:
             for start in range(0, points.shape[0], self.batch_size):
                 x = self._to_scene(points[start:start + self.batch_size])
                 sigma, _ = self.model.field.density(x)
-                out[start:start + len(x)] = sigma.float().cpu().numpy() * self.scale
+                sigma = sigma.float() * self.model.occupancy.seen(x)
+                out[start:start + len(x)] = sigma.cpu().numpy() * self.scale
         inside = np.all((points >= self.bounds_world[0]) & (points <= self.bounds_world[1]), axis=1)
         out[~inside] = 0.0
         return out

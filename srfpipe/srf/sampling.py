@@ -129,6 +129,33 @@ def pack(t_start, t_end, keep) -> RaySamples:
     return RaySamples(t_start.gather(1, order), t_end.gather(1, order), mask)
 
 
+def spheres_in_view(centres, radii, camera_to_scene, intrinsics, width: int, height: int):
+    """Which spheres (centres (M, 3), radii (M,) or a float) the viewing pyramids of the cameras
+    (camera_to_scene (N, 4, 4), OpenCV axes; intrinsics (N, 4) fx, fy, cx, cy) reach.
+
+    Returns (meets, within) (M,) bool: the sphere meets at least one pyramid (conservative: only a
+    sphere wholly behind a camera's image plane or wholly beyond one of the four planes through the
+    camera centre and an image edge is missed), and it lies wholly inside at least one."""
+    meets = torch.zeros(centres.shape[0], dtype=torch.bool, device=centres.device)
+    within = torch.zeros_like(meets)
+    radii = torch.as_tensor(radii, dtype=centres.dtype, device=centres.device)
+    for pose, (fx, fy, cx, cy) in zip(camera_to_scene.to(centres), intrinsics.to(centres).tolist()):
+        x, y, z = ((centres - pose[:3, 3]) @ pose[:3, :3]).unbind(-1)
+        nearest = z  # the least signed distance to the pyramid's planes, in front of the camera
+        # each side plane as (coordinate, tangent of the edge's angle from the axis)
+        for coordinate, tangent in ((x, cx / fx), (-x, (width - cx) / fx), (y, cy / fy), (-y, (height - cy) / fy)):
+            nearest = torch.minimum(nearest, (coordinate + tangent * z) / math.sqrt(1.0 + tangent * tangent))
+        meets |= nearest >= -radii
+        within |= nearest >= radii
+    return meets, within
+
+
+# the shell's seen-mark grid is this many times finer than its occupancy grid (the fox, its
+# occupancy shell 32 cells: the held-out view before the space no camera saw was 11.3 dB unmarked,
+# 16.0 with 128 mark cells and 20.8 with 256)
+SEEN_REFINEMENT = 8
+
+
 class OccupancyGrid(nn.Module):
     """Binary occupancy over the model box (level 0) and, with contraction, over the contracted
     cube [-2, 2]^3 (level 1, used only outside the box), updated from the field during training:
@@ -137,6 +164,12 @@ class OccupancyGrid(nn.Module):
         occupied = occ > min(mean(occ), threshold)
 
     (nerfacc's OccGridEstimator rule; distillation into the occupancy cache is the same operation.)
+
+    Space that no training camera sees is empty for good (`mark_seen`, instant-ngp's "untrained
+    density grid"): no training ray samples it, so nothing constrains its density there, and a
+    held-out camera looking through it would see whatever the shared grid values left (on the fox,
+    a dark wall in front of one held-out camera). Box cells carry the mark in `seen0`; the shell's
+    cells near the cameras are large, so its mark has a finer grid of its own (`seen1`).
     """
 
     def __init__(self, box_min, box_max, resolution, contraction: bool, outer_resolution: int = 32,
@@ -156,6 +189,9 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("occ1", torch.zeros(n1))
         self.register_buffer("binary0", torch.ones(n0, dtype=torch.bool))
         self.register_buffer("binary1", torch.ones(n1, dtype=torch.bool))
+        self.seen_resolution = SEEN_REFINEMENT * self.outer_resolution if self.contraction else 1
+        self.register_buffer("seen0", torch.ones(n0, dtype=torch.bool))
+        self.register_buffer("seen1", torch.ones(self.seen_resolution**3, dtype=torch.bool))
 
     def _u(self, x):
         centre = 0.5 * (self.box_min + self.box_max)
@@ -173,8 +209,8 @@ class OccupancyGrid(nn.Module):
         cell = torch.minimum(cell.clamp_min(0), res - 1)
         return (cell[:, 0] * res[1] + cell[:, 1]) * res[2] + cell[:, 2]
 
-    def _index1(self, v):
-        g = self.outer_resolution
+    def _index1(self, v, g: int | None = None):
+        g = g or self.outer_resolution
         cell = ((v + 2.0) * 0.25 * g).floor().long().clamp(0, g - 1)
         return (cell[:, 0] * g + cell[:, 1]) * g + cell[:, 2]
 
@@ -183,21 +219,89 @@ class OccupancyGrid(nn.Module):
         """Whether scene-frame points (M, 3) lie in occupied cells (outside the field: False)."""
         u = self._u(x)
         inside = (u.abs() <= 1.0).all(dim=-1)
-        result = self.binary0[self._index0(u)] & inside
+        result = self.binary0[self._index0(u)] & inside  # binary0 holds seen0 already
         if self.contraction:
             outside = (~inside).nonzero().squeeze(1)  # contract only what lies outside the box
-            result[outside] = self.binary1[self._index1(contract(u[outside]))]
+            v = contract(u[outside])
+            result[outside] = self.binary1[self._index1(v)] & self.seen1[self._index1(v, self.seen_resolution)]
         return result
 
-    def _cell_points(self, level: int, cells: torch.Tensor, generator) -> torch.Tensor:
-        """A jittered scene-frame point inside each of the given cells."""
-        jitter = torch.rand(cells.shape[0], 3, generator=generator, device=cells.device)
+    @torch.no_grad()
+    def seen(self, x: torch.Tensor) -> torch.Tensor:
+        """Whether scene-frame points (M, 3) lie where a training camera saw (see `mark_seen`)."""
+        u = self._u(x)
+        inside = (u.abs() <= 1.0).all(dim=-1)
+        result = self.seen0[self._index0(u)]
+        if self.contraction:
+            outside = (~inside).nonzero().squeeze(1)
+            result[outside] = self.seen1[self._index1(contract(u[outside]), self.seen_resolution)]
+        return result
+
+    @torch.no_grad()
+    def mark_seen(self, camera_to_scene, intrinsics, width: int, height: int, chunk: int = 1 << 18) -> dict:
+        """Mark the cells that no camera (the training views: camera_to_scene (N, 4, 4), intrinsics
+        (N, 4)) sees as empty for good. Returns the fractions of box and shell cells seen."""
+        device = self.occ0.device
+        res = torch.tensor(self.resolution, device=device, dtype=torch.float32)
+        radius0 = 0.5 * float(((self.box_max - self.box_min) / res).norm())
+        for start in range(0, self.seen0.numel(), chunk):
+            cells = torch.arange(start, min(start + chunk, self.seen0.numel()), device=device)
+            self.seen0[cells] = spheres_in_view(self._cell_points(0, cells), radius0, camera_to_scene,
+                                                intrinsics, width, height)[0]
+        self.occ0.masked_fill_(~self.seen0, 0.0)
+        self.binary0 &= self.seen0
+        fractions = {"box": float(self.seen0.float().mean())}
+        if self.contraction:
+            fractions["shell"] = self._mark_shell_seen(camera_to_scene, intrinsics, width, height)
+        return fractions
+
+    def _mark_shell_seen(self, camera_to_scene, intrinsics, width: int, height: int) -> float:
+        """seen1, coarse to fine: a cell wholly inside a camera's view is seen, one outside every
+        view is not, and only the cells on a view's boundary are split in eight, down to the
+        seen-mark resolution (the whole fine grid tested cell by cell took 14 s on the fox).
+        Returns the fraction of the shell's cells seen."""
+        device = self.seen1.device
+        final = self.seen_resolution
+        corners = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], device=device)
+        g = self.outer_resolution
+        ijk = torch.stack(torch.meshgrid(*[torch.arange(g, device=device)] * 3, indexing="ij"), -1).reshape(-1, 3)
+        seen = torch.zeros((final,) * 3, dtype=torch.bool, device=device)
+        while ijk.shape[0]:
+            centres = self._x(uncontract((ijk + 0.5) / g * 4.0 - 2.0))
+            # the bounding sphere through the cell's corners, a little wider as the cell is curved
+            v = ((ijk[:, None] + corners) / g * 4.0 - 2.0).clamp(-2.0 + 1e-4, 2.0 - 1e-4)
+            radii = 1.1 * (self._x(uncontract(v.reshape(-1, 3))).reshape(-1, 8, 3)
+                           - centres[:, None]).norm(dim=-1).amax(dim=1)
+            meets, within = spheres_in_view(centres, radii, camera_to_scene, intrinsics, width, height)
+            settled = ijk[within] if g < final else ijk[meets]
+            block = final // g
+            for offset in torch.cartesian_prod(*[torch.arange(block, device=device)] * 3).reshape(-1, 3):
+                fine = settled * block + offset
+                seen[fine[:, 0], fine[:, 1], fine[:, 2]] = True
+            if g == final:
+                break
+            ijk = (ijk[meets & ~within][:, None] * 2 + corners).reshape(-1, 3)
+            g *= 2
+        centre = (torch.arange(final, device=device) + 0.5) / final * 4.0 - 2.0
+        in_box = centre.abs() < 1.0
+        in_box = in_box[:, None, None] & in_box[None, :, None] & in_box[None, None, :]
+        self.seen1.copy_((seen | in_box).reshape(-1))  # cells inside the box are level 0's
+        return float(seen[~in_box].float().mean())
+
+    def _cell_points(self, level: int, cells: torch.Tensor, generator=None,
+                     resolution: int | None = None) -> torch.Tensor:
+        """A jittered scene-frame point inside each of the given cells (without a generator: the
+        centres); level 1 on a grid of `resolution` (default the occupancy grid's)."""
+        if generator is None:
+            jitter = torch.full((cells.shape[0], 3), 0.5, device=cells.device)
+        else:
+            jitter = torch.rand(cells.shape[0], 3, generator=generator, device=cells.device)
         if level == 0:
             rx, ry, rz = self.resolution
             ijk = torch.stack([cells // (ry * rz), (cells // rz) % ry, cells % rz], dim=-1)
             res = torch.tensor(self.resolution, device=cells.device, dtype=torch.float32)
             return self._x((ijk + jitter) / res * 2.0 - 1.0)
-        g = self.outer_resolution
+        g = resolution or self.outer_resolution
         ijk = torch.stack([cells // (g * g), (cells // g) % g, cells % g], dim=-1)
         v = ((ijk + jitter) / g * 4.0 - 2.0).clamp(-2.0 + 1e-4, 2.0 - 1e-4)
         return self._x(uncontract(v))
@@ -227,6 +331,8 @@ class OccupancyGrid(nn.Module):
                 values[start:start + chunk] = density_fn(points).float() * self.step
             current = occ[cells] * self.decay
             occ.index_put_((cells,), torch.maximum(current, values))
+            if level == 0:
+                occ.masked_fill_(~self.seen0, 0.0)
             if level == 1:  # cells inside the box belong to level 0
                 g = self.outer_resolution
                 centre = (torch.arange(g, device=occ.device) + 0.5) / g * 4.0 - 2.0

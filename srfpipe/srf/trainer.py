@@ -410,6 +410,11 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
                                 data.count, device)
     model = SRFModel(config, device).to(device)
     model.field.record_training_cameras(data.poses_scene, train_views)
+    seen_fraction = None
+    if options.get("empty_unseen", True):
+        seen_fraction = model.occupancy.mark_seen(data.poses_scene[train_views], data.intrinsics[train_views],
+                                                  data.width, data.height)
+        log.info("cells a training camera sees: %s", ", ".join(f"{k} {v:.1%}" for k, v in seen_fraction.items()))
     fused = device.type in ("cpu", "cuda")
     optimizer = torch.optim.Adam(parameter_groups(model, options), lr=float(options["lr"]), eps=1e-15, fused=fused)
     scaler_needed = False
@@ -557,7 +562,7 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
         bounds_world=data.bounds_world, scene_scale=scale, holdout_every=holdout_every,
         train_views=train_views, heldout_views=heldout_views, train_seconds=train_seconds,
         precision=precision, device=str(device), fingerprint=fp, iterations_done=iterations_done, resumed_from_step=resumed_from,
-        final=({k: curve[k][-1] for k in curve} if curve["step"] else {}),
+        final=({k: curve[k][-1] for k in curve} if curve["step"] else {}), seen_fraction=seen_fraction,
     )
     if not options.get("keep_checkpoints", False) and ckpt_dir.is_dir():
         for path in ckpt_dir.glob("step-*.pt"):
