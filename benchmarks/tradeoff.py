@@ -415,7 +415,8 @@ def pareto_plot(per_setting: dict, path: Path, panel_size=(360, 300)) -> None:
             if points:
                 xs, ys = np.array([p[1] for p in points]), np.array([p[2] for p in points])
                 x0, x1 = 0.0, float(xs.max()) * 1.15 or 1.0
-                pad = 0.08 * (np.ptp(ys) + 1e-3)
+                # a lone point (a scene with one setting) gets a readable axis: 2 % of its value
+                pad = 0.08 * np.ptp(ys) or 0.02 * max(abs(float(ys.max())), 1e-3)
                 y0, y1 = float(ys.min()) - pad, float(ys.max()) + pad
                 left, bottom, w, h = 48, height - 36, width - 60, height - 66
 
