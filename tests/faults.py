@@ -127,7 +127,9 @@ def last_logged_step(metrics_log: Path) -> int | None:
 
     if not metrics_log.exists():
         return None
-    steps = [json.loads(line).get("step") for line in metrics_log.read_text().splitlines() if line.strip()]
+    # only whole lines: the trainer may be writing the last one while this reads the file
+    whole = metrics_log.read_text().split("\n")[:-1]
+    steps = [json.loads(line).get("step") for line in whole if line.strip()]
     steps = [s for s in steps if isinstance(s, int)]
     return max(steps) if steps else None
 

@@ -39,7 +39,7 @@ def test_sphere_test_keeps_the_frustum_and_drops_what_lies_behind_or_beside():
     assert meets.tolist() == [True] and within.tolist() == [False]
 
 
-def test_every_point_a_training_ray_samples_lies_in_a_seen_cell():
+def test_training_rays_lose_no_sample_and_rendering_keeps_nearly_all():
     poses = ring_cameras()
     grid, fractions = marked_grid(poses)
     assert 0.0 < fractions["shell"] < 1.0
@@ -50,8 +50,11 @@ def test_every_point_a_training_ray_samples_lies_in_a_seen_cell():
         t = 0.05 + 30.0 * torch.rand(origins.shape[0], 1, generator=generator) ** 3  # near and far
         points.append(origins + directions * t)
     points = torch.cat(points)
-    assert bool(grid.seen(points).all())
-    assert bool(grid.occupied(points).all())  # the untrained grid: every seen cell is occupied
+    assert bool(grid.train().occupied(points).all())  # the untrained grid: nothing is dropped
+    # a shell cell on a view's boundary goes with its centre: some points at the views' edges near
+    # these few, small cameras fall in cells counted as unseen, which only rendering skips
+    assert float(grid.seen(points).float().mean()) > 0.9
+    assert float(grid.eval().occupied(points).float().mean()) > 0.9
 
 
 @pytest.mark.parametrize("half", [1.0, 4.0])  # the cameras in the shell, and inside the box
@@ -66,7 +69,7 @@ def test_space_no_camera_sees_is_never_occupied(half):
     grid.binary1.fill_(True)
     # the occupancy update never marks an unseen box cell again, whatever the field's density
     grid.update(lambda x: torch.full((x.shape[0],), 1e3), torch.Generator().manual_seed(0), all_cells=True)
-    assert not bool(grid.occupied(behind).any())
+    assert not bool(grid.eval().occupied(behind).any())  # what rendering samples
     assert bool(grid.occupied(torch.zeros(1, 3)).all())
     if half > 2.5:
         assert int(grid.binary0.sum()) == int(grid.seen0.sum()) < grid.seen0.numel()
