@@ -129,25 +129,28 @@ def pack(t_start, t_end, keep) -> RaySamples:
     return RaySamples(t_start.gather(1, order), t_end.gather(1, order), mask)
 
 
-def spheres_in_view(centres, radii, camera_to_scene, intrinsics, width: int, height: int):
-    """Which spheres (centres (M, 3), radii (M,) or a float) the viewing pyramids of the cameras
-    (camera_to_scene (N, 4, 4), OpenCV axes; intrinsics (N, 4) fx, fy, cx, cy) reach.
-
-    Returns (meets, within) (M,) bool: the sphere meets at least one pyramid (conservative: only a
-    sphere wholly behind a camera's image plane or wholly beyond one of the four planes through the
-    camera centre and an image edge is missed), and it lies wholly inside at least one."""
-    meets = torch.zeros(centres.shape[0], dtype=torch.bool, device=centres.device)
-    within = torch.zeros_like(meets)
-    radii = torch.as_tensor(radii, dtype=centres.dtype, device=centres.device)
-    for pose, (fx, fy, cx, cy) in zip(camera_to_scene.to(centres), intrinsics.to(centres).tolist()):
-        x, y, z = ((centres - pose[:3, 3]) @ pose[:3, :3]).unbind(-1)
-        nearest = z  # the least signed distance to the pyramid's planes, in front of the camera
+def view_depth(points, camera_to_scene, intrinsics, width: int, height: int) -> torch.Tensor:
+    """How deep each point (M, 3) lies inside the viewing pyramid of the camera that sees it best
+    (camera_to_scene (N, 4, 4), OpenCV axes; intrinsics (N, 4) fx, fy, cx, cy): the largest, over
+    the cameras, of the least signed distance to the pyramid's five planes (the image plane through
+    the centre and the four planes through the centre and an image edge); negative outside all.
+    A sphere of radius r meets a view when its centre's depth is >= -r, lies inside one when >= r."""
+    best = torch.full((points.shape[0],), -torch.inf, dtype=points.dtype, device=points.device)
+    for pose, (fx, fy, cx, cy) in zip(camera_to_scene.to(points), intrinsics.to(points).tolist()):
+        x, y, z = ((points - pose[:3, 3]) @ pose[:3, :3]).unbind(-1)
+        nearest = z
         # each side plane as (coordinate, tangent of the edge's angle from the axis)
         for coordinate, tangent in ((x, cx / fx), (-x, (width - cx) / fx), (y, cy / fy), (-y, (height - cy) / fy)):
             nearest = torch.minimum(nearest, (coordinate + tangent * z) / math.sqrt(1.0 + tangent * tangent))
-        meets |= nearest >= -radii
-        within |= nearest >= radii
-    return meets, within
+        best = torch.maximum(best, nearest)
+    return best
+
+
+def spheres_in_view(centres, radii, camera_to_scene, intrinsics, width: int, height: int):
+    """(meets, within) (M,) bool for spheres (centres (M, 3), radii (M,) or a float): the sphere
+    meets at least one camera's viewing pyramid (conservative), and lies wholly inside one."""
+    depth = view_depth(centres, camera_to_scene, intrinsics, width, height)
+    return depth >= -torch.as_tensor(radii, dtype=depth.dtype), depth >= torch.as_tensor(radii, dtype=depth.dtype)
 
 
 # the shell's seen-mark grid is this many times finer than its occupancy grid (the fox, its
@@ -280,9 +283,10 @@ class OccupancyGrid(nn.Module):
             v = ((ijk[:, None] + corners) / g * 4.0 - 2.0).clamp(-2.0 + 1e-4, 2.0 - 1e-4)
             radii = 1.1 * (self._x(uncontract(v.reshape(-1, 3))).reshape(-1, 8, 3)
                            - centres[:, None]).norm(dim=-1).amax(dim=1)
-            meets, within = spheres_in_view(centres, radii, camera_to_scene, intrinsics, width, height)
+            depth = view_depth(centres, camera_to_scene, intrinsics, width, height)
+            meets, within = depth >= -radii, depth >= radii
             if g == final:  # a cell on a view's boundary goes with its centre (see the class)
-                meets = within | spheres_in_view(centres, 0.0, camera_to_scene, intrinsics, width, height)[0]
+                meets = depth >= 0.0
             settled = ijk[within] if g < final else ijk[meets]
             block = final // g
             for offset in torch.cartesian_prod(*[torch.arange(block, device=device)] * 3).reshape(-1, 3):
@@ -292,16 +296,20 @@ class OccupancyGrid(nn.Module):
                 break
             ijk = (ijk[meets & ~within][:, None] * 2 + corners).reshape(-1, 3)
             g *= 2
-        centre = (torch.arange(final, device=device) + 0.5) / final * 4.0 - 2.0
-        in_box = centre.abs() < 1.0
-        in_box = in_box[:, None, None] & in_box[None, :, None] & in_box[None, None, :]
-        self.seen1.copy_((seen | in_box).reshape(-1))  # cells inside the box are level 0's
-        return float(seen[~in_box].float().mean())
+        in_box = self._box_cells(final, device)
+        self.seen1.copy_(seen.reshape(-1) | in_box)  # cells inside the box are level 0's
+        return float(seen.reshape(-1)[~in_box].float().mean())
 
-    def _cell_points(self, level: int, cells: torch.Tensor, generator=None,
-                     resolution: int | None = None) -> torch.Tensor:
+    @staticmethod
+    def _box_cells(g: int, device) -> torch.Tensor:
+        """(g^3,) bool: the cells of a g^3 grid over the contracted cube whose centre lies in the box."""
+        centre = (torch.arange(g, device=device) + 0.5) / g * 4.0 - 2.0
+        inner = centre.abs() < 1.0
+        return (inner[:, None, None] & inner[None, :, None] & inner[None, None, :]).reshape(-1)
+
+    def _cell_points(self, level: int, cells: torch.Tensor, generator=None) -> torch.Tensor:
         """A jittered scene-frame point inside each of the given cells (without a generator: the
-        centres); level 1 on a grid of `resolution` (default the occupancy grid's)."""
+        centres)."""
         if generator is None:
             jitter = torch.full((cells.shape[0], 3), 0.5, device=cells.device)
         else:
@@ -311,7 +319,7 @@ class OccupancyGrid(nn.Module):
             ijk = torch.stack([cells // (ry * rz), (cells // rz) % ry, cells % rz], dim=-1)
             res = torch.tensor(self.resolution, device=cells.device, dtype=torch.float32)
             return self._x((ijk + jitter) / res * 2.0 - 1.0)
-        g = resolution or self.outer_resolution
+        g = self.outer_resolution
         ijk = torch.stack([cells // (g * g), (cells // g) % g, cells % g], dim=-1)
         v = ((ijk + jitter) / g * 4.0 - 2.0).clamp(-2.0 + 1e-4, 2.0 - 1e-4)
         return self._x(uncontract(v))
@@ -344,11 +352,7 @@ class OccupancyGrid(nn.Module):
             if level == 0:
                 occ.masked_fill_(~self.seen0, 0.0)
             if level == 1:  # cells inside the box belong to level 0
-                g = self.outer_resolution
-                centre = (torch.arange(g, device=occ.device) + 0.5) / g * 4.0 - 2.0
-                inner = (centre.abs() < 1.0)
-                inner3 = inner[:, None, None] & inner[None, :, None] & inner[None, None, :]
-                occ.masked_fill_(inner3.reshape(-1), 0.0)
+                occ.masked_fill_(self._box_cells(self.outer_resolution, occ.device), 0.0)
             threshold = min(float(occ.mean()), self.threshold)
             binary.copy_(occ > threshold)
 
