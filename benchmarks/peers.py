@@ -36,7 +36,7 @@ curve rises). `time_to_nerfacto300_ratio` = nerfacto's time / srfpipe's time.
     python benchmarks/peers.py                # orchard and fox, budgets 1, 2, 5, 10 min (~2.5 h)
     python benchmarks/peers.py --quick        # fox only (no COLMAP refinement), budgets 1, 2, 4 min (~25 min)
     python benchmarks/peers.py --nsvenv DIR   # nerfstudio's environment (default $NSVENV or /tmp/nsvenv)
-    python benchmarks/peers.py --scenes orchard --preset fast   # as peers.json's orchard entry (the fox: its own, balanced)
+    python benchmarks/peers.py --scenes fox --preset fast       # as peers.json's entries (each scene measured on its own, --preset fast)
 
 Writes benchmarks/results/peers.json (`peers_quick.json`) and peers.png (PSNR against the clock).
 Opt-in and never part of CI: nerfstudio is no dependency of srfpipe (a 3.5 GB environment).
