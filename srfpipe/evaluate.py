@@ -76,12 +76,19 @@ def semantic_blend(rgb: np.ndarray, label: np.ndarray, colours: np.ndarray, alph
 
 
 def depth_image(depth: np.ndarray, near: float, far: float) -> np.ndarray:
-    """Colour-mapped depth (turbo), black where there is no depth."""
+    """Colour-mapped inverse depth (turbo: near red, far blue), black where there is no depth.
+
+    Inverse depth, as mip-NeRF 360 shows unbounded scenes: linear depth spends the whole colour
+    range on the background (the orchard's sky lies 100x farther than its tree), which leaves the
+    object and the ground it stands on one colour."""
     import cv2
 
     valid = np.isfinite(depth) & (depth > 0)
-    norm = np.clip((depth - near) / max(far - near, 1e-9), 0, 1)
-    coloured = cv2.applyColorMap((255 * (1 - norm)).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1]
+    near = max(near, 1e-9)
+    far = max(far, near * (1 + 1e-6))
+    disparity = 1.0 / np.maximum(np.where(valid, depth, far), 1e-9)
+    norm = np.clip((disparity - 1.0 / far) / (1.0 / near - 1.0 / far), 0, 1)
+    coloured = cv2.applyColorMap((255 * norm).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1]
     return np.where(valid[..., None], coloured, 0).astype(np.uint8)
 
 

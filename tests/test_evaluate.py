@@ -116,3 +116,17 @@ def test_a_field_from_other_labels_of_the_same_capture_sees_the_views_where_they
     field.world_from_scene = other_frame @ field.world_from_scene  # the field's own frame differs
     saved = evaluate_field(field, data, folder / "eval_other_frame", CENTRES, labels, "exact")
     assert saved["psnr"] > 45 and saved["miou_gt"] > 0.9
+
+
+def test_depth_image_orders_near_to_far_and_blanks_missing_depth():
+    """Inverse depth: near red, far blue, and the object 10x nearer than a far background still gets
+    most of the colour range (linear depth gave the whole object one colour)."""
+    from srfpipe.evaluate import depth_image
+
+    depth = np.array([[1.0, 1.5, 2.0, 10.0, 100.0, 0.0, np.nan, np.inf]])
+    image = depth_image(depth, near=1.0, far=100.0)[0].astype(int)
+    turbo = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1].astype(int)
+    index = [int(np.argmin(((turbo - pixel) ** 2).sum(axis=1))) for pixel in image[:5]]
+    assert index == sorted(index, reverse=True) and index[0] == 255 and index[-1] == 0
+    assert index[0] - index[2] > 100  # depths 1 and 2 are far apart in colour
+    assert (image[5:] == 0).all()
