@@ -150,7 +150,8 @@ def spheres_in_view(centres, radii, camera_to_scene, intrinsics, width: int, hei
     """(meets, within) (M,) bool for spheres (centres (M, 3), radii (M,) or a float): the sphere
     meets at least one camera's viewing pyramid (conservative), and lies wholly inside one."""
     depth = view_depth(centres, camera_to_scene, intrinsics, width, height)
-    return depth >= -torch.as_tensor(radii, dtype=depth.dtype), depth >= torch.as_tensor(radii, dtype=depth.dtype)
+    radii = torch.as_tensor(radii, dtype=depth.dtype, device=depth.device)
+    return depth >= -radii, depth >= radii
 
 
 # the shell's seen-mark grid is this many times finer than its occupancy grid (the fox, its
