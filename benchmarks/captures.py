@@ -1,20 +1,34 @@
-"""Benchmark: the pipeline's defaults on captures unlike the orchard (issue "any capture").
+"""Benchmark: the pipeline's defaults on a panel of captures nobody tuned for (issue "captures nobody tuned for").
 
-Three scenes, each built through the Snakemake workflow with the shipped scene file and otherwise
-default settings (10 minutes of training on 2 cores, every 8th view held out):
+Every default is a claim about every capture, so each panel capture is built through the Snakemake
+workflow with its scene file and otherwise default settings (10 minutes of training on 2 cores,
+every 8th view held out):
 
-* fox     config/scenes/fox.yaml: a real phone capture (../shared/data/fox), zero classes;
-* plant   config/scenes/plant.yaml: the built-in thin plant, millimetres, 18 far narrow views;
-* orchard config/scenes/orchard.yaml: the built-in orchard, which must not get worse.
+* orchard       config/scenes/orchard.yaml: the built-in orchard, which must not get worse;
+* plant         config/scenes/plant.yaml: the built-in thin plant, millimetres, 18 far narrow views;
+* fox           config/scenes/fox.yaml: a real phone capture (../shared/data/fox), zero classes;
+* bottle        config/scenes/bottle.yaml: real photos of one object in a living room, masks of that
+                object only (../shared/data/bottle);
+* fern          config/scenes/fern.yaml: a real forward-facing plant in LLFF's format (../shared/data/fern);
+* beer          config/scenes/beer.yaml: phone-video frames with a COLMAP binary model (../shared/data/beer);
+* plant-small   generated variant: the plant small in the frame (a wide lens: under 1 % of the
+                pixels), its masks soft (blurred edges) and with the parts thinner than 5 px
+                missing from every third view's masks (as a segmenter drops a stalk);
+* orchard-apple generated variant: the orchard with only `apple` prompted (masks cover a few percent);
+* orchard-lens  generated variant: the orchard rendered through an OpenCV lens with a phone's strong
+                tangential calibration (k1 -0.0024, k2 -0.021, p1 0.011, p2 0.0096) at 605 x 806.
 
-    python benchmarks/captures.py [--quick] [--workdir DIR] [--scenes fox plant orchard]
+    python benchmarks/captures.py [--quick] [--workdir DIR] [--scenes NAME ...]
 
 A scene whose images shrink by another factor than 4 (images.downscale null keeps the plant's 18
 views at 256 px) is also measured on its held-out views at factor 4, the resolution earlier runs
 measured at: `reference` in its entry; the plant's thin_* keys are those.
 
-Writes benchmarks/results/captures.json and captures.png (per scene, the first held-out view:
-render | semantics | depth). `--quick`: 60 s of training and no COLMAP refinement of the fox.
+Writes benchmarks/results/captures.json (per scene, and the `panel` table the issue names: psnr,
+ssim, psnr_object, miou_classes, train_view_psnr, bounds_source, steps, and nerfacto's and
+srfpipe's peers.json numbers where that file has the capture) and captures.png (per scene, the
+first held-out view: render | semantics | depth). `--quick`: 60 s of training and no COLMAP
+refinement of the fox. A run of some scenes keeps the others' last measurement.
 """
 
 from __future__ import annotations
@@ -30,26 +44,80 @@ import yaml
 from common import (REPO, earlier_measurements, machine_info, merge, renamed_paths, result_path, rule_seconds, run_command,
                     run_workflow, write_result, write_workdir)
 
-FOX = (REPO / ".." / "shared" / "data" / "fox").resolve()
+SHARED = (REPO / ".." / "shared" / "data").resolve()
+FOX = SHARED / "fox"
 # The factor every captures.json measured at before images.downscale came from the capture: a scene
 # whose images now shrink by another factor is measured again on the same held-out views at this
 # one, since PSNR depends on the pixel size (the same field scores lower on finer pixels).
 REFERENCE_DOWNSCALE = 4
 REFERENCE_KEYS = ("psnr", "psnr_object", "ssim", "miou_gt_classes", "floater_fraction", "views")
 
+PANEL = ("orchard", "plant", "fox", "bottle", "fern", "beer", "plant-small", "orchard-apple", "orchard-lens")
+# a phone's COLMAP calibration with large tangential terms (the fruit capture of the issue)
+PHONE_LENS = [-0.0024, -0.021, 0.011, 0.0096]
+# generated variants: (scene file they start from, overrides)
+VARIANTS = {
+    "plant-small": ("plant", {"plant": {"fov_deg": 40},
+                              "segmentation": {"import": {"path": "prepared/plant-small/masks", "format": "masks",
+                                                          "pattern": "{prompt}/{stem}.png"}}}),
+    "orchard-apple": ("orchard", {"segmentation": {"prompts": ["apple"]}}),
+    "orchard-lens": ("orchard", {"orchard": {"width": 605, "height": 806, "distortion": PHONE_LENS}}),
+}
+THIN_PART_PX = 5  # plant-small: parts thinner than this vanish from every third view's masks
+MASK_BLUR_PX = 1.5  # plant-small: Gaussian sigma of the masks' soft edges
+
+
+def shared_paths(value):
+    """Paths of a scene file that lead into ../shared/data, made absolute (the work directory is elsewhere)."""
+    if isinstance(value, dict):
+        return {k: shared_paths(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [shared_paths(v) for v in value]
+    if isinstance(value, str) and value.startswith("../shared/data/"):
+        return str(SHARED / value[len("../shared/data/"):])
+    return value
+
 
 def scene_configs(names: list[str], quick: bool) -> dict[str, dict]:
     scenes = {}
     for name in names:
-        scene = yaml.safe_load((REPO / "config" / "scenes" / f"{name}.yaml").read_text()) or {}
-        if name == "fox":
-            scene["source"]["path"] = str(FOX)
-            if quick:
-                scene.setdefault("poses", {})["refine"] = "none"
+        base, overrides = VARIANTS.get(name, (name, {}))
+        scene = yaml.safe_load((REPO / "config" / "scenes" / f"{base}.yaml").read_text()) or {}
+        scene = shared_paths(renamed_paths(merge(scene, overrides), f"results/{base}/", f"results/{name}/"))
+        for key, value in overrides.items():  # nested overrides replace whole sub-sections
+            if isinstance(value, dict):
+                for sub, inner in value.items():
+                    scene[key][sub] = inner
+        if name == "fox" and quick:
+            scene.setdefault("poses", {})["refine"] = "none"
         if quick:
             scene.setdefault("train", {})["time_budget"] = 60
         scenes[name] = scene
     return scenes
+
+
+def prepare_soft_partial_masks(workdir: Path, name: str, scene: dict) -> Path:
+    """plant-small's masks from its generated ground-truth labels: soft edges everywhere, and the
+    parts thinner than THIN_PART_PX gone from every third view (a morphological opening), as a
+    segmenter's masks of a thin plant look. One PNG per prompt and frame, 0-255."""
+    import cv2
+
+    capture = workdir / "results" / name / "capture" / "ground_truth"
+    values = scene["segmentation"]["import"].get("values") or {}
+    if not values:  # the plant's label values, from its own scene file
+        values = yaml.safe_load((REPO / "config" / "scenes" / "plant.yaml").read_text())["segmentation"]["import"]["values"]
+    out = workdir / "prepared" / name / "masks"
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (THIN_PART_PX, THIN_PART_PX))
+    for index, path in enumerate(sorted((capture / "labels").glob("*.png"))):
+        label = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        for prompt, value in values.items():
+            mask = np.isin(label, np.atleast_1d(value)).astype(np.uint8)
+            if index % 3 == 1:
+                mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, kernel)
+            soft = cv2.GaussianBlur(mask.astype(np.float32), (0, 0), MASK_BLUR_PX)
+            (out / prompt).mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(out / prompt / path.name), np.round(255 * np.clip(soft, 0, 1)).astype(np.uint8))
+    return out
 
 
 def box_volume(box) -> float:
@@ -66,14 +134,17 @@ def scene_report(results: Path, workdir: Path, name: str) -> dict:
     if metrics_file.exists():
         metrics = json.loads(metrics_file.read_text())
         for key in ("psnr", "psnr_object", "ssim", "miou", "miou_gt", "miou_gt_classes", "iou_gt",
-                    "floater_fraction", "significant_samples_per_ray", "views"):
+                    "floater_fraction", "significant_samples_per_ray", "views", "miou_classes",
+                    "train_view_psnr", "generalization_gap_db", "overfit"):
             if key in metrics:
                 report[key] = metrics[key]
     labels = results / name / "labels.zarr"
     if labels.exists():
         info = read_provenance(labels)
         report["bounds"] = {"box": info.get("bounds_world"), "source": info.get("bounds_source"),
-                            "poses_box": info.get("bounds_poses"), "hull": info.get("bounds_hull")}
+                            "poses_box": info.get("bounds_poses"), "hull": info.get("bounds_hull"),
+                            "semantic_box": info.get("semantic_bounds_world"),
+                            "background": info.get("background")}
         truth_file = results / name / "capture" / "ground_truth" / "scene.json"
         # a generated capture that knows its object's box (the plant): how tight the model box is
         truth = json.loads(truth_file.read_text()).get("object_bounds_world") if truth_file.exists() else None
@@ -149,20 +220,53 @@ def montage(results: Path, names: list[str], path: Path) -> None:
     print(f"wrote {path}")
 
 
+def panel_entry(scene: dict, peers: dict) -> dict:
+    """The issue's panel keys for one capture, from its entry (and peers.json's, when it has the capture)."""
+    bounds = scene.get("bounds") or {}
+    budgets = peers.get("budgets") or {}
+    return {
+        "psnr": scene.get("psnr"), "ssim": scene.get("ssim"), "psnr_object": scene.get("psnr_object"),
+        "miou_classes": scene.get("miou_gt_classes", scene.get("miou_classes")),
+        "train_view_psnr": scene.get("train_view_psnr"), "generalization_gap_db": scene.get("generalization_gap_db"),
+        "nerfacto_psnr_5min": ((budgets.get("300") or {}).get("nerfacto") or {}).get("psnr"),
+        "nerfacto_psnr_10min": ((budgets.get("600") or {}).get("nerfacto") or {}).get("psnr"),
+        "srfpipe_psnr_5min": ((budgets.get("300") or {}).get("srf") or {}).get("psnr"),
+        "bounds_source": bounds.get("source"), "steps": scene.get("steps"),
+    }
+
+
+def peers_by_scene() -> dict:
+    """peers.json's entry of each scene it measured (empty when the file is absent)."""
+    path = REPO / "benchmarks" / "results" / "peers.json"
+    if not path.exists():
+        return {}
+    report = json.loads(path.read_text())
+    return {name: report[name] for name in report.get("scenes", []) if isinstance(report.get(name), dict)}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="60 s of training, no COLMAP refinement")
     parser.add_argument("--workdir", type=Path, default=REPO / "benchmarks" / "work" / "captures")
-    parser.add_argument("--scenes", nargs="+", default=["fox", "plant", "orchard"])
+    parser.add_argument("--scenes", nargs="+", default=list(PANEL), choices=PANEL)
     parser.add_argument("--snakemake-args", nargs=argparse.REMAINDER, default=[],
                         help="more Snakemake arguments (last), e.g. --rerun-triggers mtime to keep a "
                              "finished COLMAP refinement after a schema default changed")
     args = parser.parse_args()
-    if "fox" in args.scenes and not (FOX / "transforms.json").exists():
-        parser.error(f"{FOX}: the fox capture is not there (../shared/data/fox beside the repository)")
+    for name in args.scenes:
+        source = (yaml.safe_load((REPO / "config" / "scenes" / f"{VARIANTS.get(name, (name,))[0]}.yaml").read_text())
+                  .get("source", {}))
+        path = shared_paths(source.get("path", ""))
+        if path.startswith(str(SHARED)) and not Path(path).exists():
+            parser.error(f"{path}: the {name} capture is not there (../shared/data beside the repository)")
 
     scenes = scene_configs(args.scenes, args.quick)
     write_workdir(args.workdir, scenes, "occupancy")
+    for name in scenes:
+        if name == "plant-small":  # its masks are made from its generated capture
+            run_workflow(args.workdir, [f"results/{name}/capture"], log=args.workdir / "snakemake.log",
+                         extra=tuple(args.snakemake_args))
+            prepare_soft_partial_masks(args.workdir, name, scenes[name])
     targets = [f"results/{name}/{artifact}" for name in scenes for artifact in ("eval", "occupancy.zarr")]
     try:  # --keep-going: one failing scene must not hide the others' numbers
         seconds = run_workflow(args.workdir, targets, log=args.workdir / "snakemake.log", extra=("--keep-going", *args.snakemake_args))
@@ -181,11 +285,16 @@ def main() -> int:
                 per_scene[name]["reference"] = reference_report(args.workdir, name)
     previous_file = result_path("captures", args.quick)
     measured_now = sorted(per_scene)
+    previous_configs = {}
     if previous_file.exists():  # a run of some scenes keeps the others' last measurement
-        previous = json.loads(previous_file.read_text()).get("scenes", {})
-        per_scene = {**earlier_measurements(previous, per_scene), **per_scene}
-    report: dict = {"scenes": per_scene, "measured_now": measured_now, "workflow_seconds": seconds,
-                    "machine": machine_info(quick=args.quick), "scene_configs": scenes}
+        previous_report = json.loads(previous_file.read_text())
+        previous_configs = previous_report.get("scene_configs", {})
+        per_scene = {**earlier_measurements(previous_report.get("scenes", {}), per_scene), **per_scene}
+    peers = peers_by_scene()
+    panel = {name: panel_entry(per_scene[name], peers.get(name, {})) for name in PANEL if name in per_scene}
+    report: dict = {"scenes": per_scene, "panel": panel, "measured_now": measured_now, "workflow_seconds": seconds,
+                    "machine": machine_info(quick=args.quick),
+                    "scene_configs": {**{k: v for k, v in previous_configs.items() if k in per_scene}, **scenes}}
     fox, plant, orchard = (per_scene.get(n, {}) for n in ("fox", "plant", "orchard"))
     report.update({
         "fox_psnr": fox.get("psnr"), "fox_ssim": fox.get("ssim"),
@@ -205,14 +314,12 @@ def main() -> int:
     montage(results, list(per_scene), REPO / "benchmarks" / "results" / f"captures{'_quick' if args.quick else ''}.png")
     write_result(result_path("captures", args.quick), report)
 
-    print(f"{'scene':8} {'psnr':>6} {'obj':>6} {'ssim':>6} {'mIoU':>6} {'floaters':>8} {'bounds':>10} distill")
-    for name, s in per_scene.items():
-        cells = [s.get("psnr"), s.get("psnr_object"), s.get("ssim"), s.get("miou_gt_classes") or s.get("miou_gt"),
-                 s.get("floater_fraction")]
-        text = " ".join(f"{v:6.3f}" if isinstance(v, float) else f"{'-':>6}" for v in cells)
-        print(f"{name:8} {text} {str((s.get('bounds') or {}).get('source')):>10} {s.get('distill_ok')}")
-    if report["thin_bounds_ratio"] is not None:
-        print(f"thin_bounds_ratio: {report['thin_bounds_ratio']:.2f}")
+    columns = ("psnr", "ssim", "psnr_object", "miou_classes", "train_view_psnr", "nerfacto_psnr_10min")
+    print(f"{'capture':14} " + " ".join(f"{c[:12]:>12}" for c in columns) + f" {'bounds':>12} {'steps':>6} distill")
+    for name, entry in panel.items():
+        cells = " ".join(f"{entry[c]:12.3f}" if isinstance(entry[c], float) else f"{'-':>12}" for c in columns)
+        print(f"{name:14} {cells} {str(entry['bounds_source']):>12} {str(entry['steps']):>6} "
+              f"{per_scene[name].get('distill_ok')}")
     return 0
 
 

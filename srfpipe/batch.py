@@ -92,6 +92,11 @@ def _metrics_text(metrics: dict | None) -> str:
         parts.append(f"PSNR {metrics['psnr']:.1f} dB")
     if isinstance(metrics.get("miou"), (int, float)):
         parts.append(f"mIoU {metrics['miou']:.2f}")
+    if metrics.get("overfit") is True:  # evaluate's generalization check (GENERALIZATION_GAP_DB)
+        train, heldout = metrics.get("train_view_psnr"), metrics.get("psnr")
+        numbers = (f" (train {train:.1f} dB, held-out {heldout:.1f} dB)"
+                   if isinstance(train, (int, float)) and isinstance(heldout, (int, float)) else "")
+        parts.append("fits the training views, not new ones" + numbers)
     return ", ".join(parts)
 
 

@@ -51,20 +51,52 @@ def scale_intrinsics(intrinsics: np.ndarray, sx: float, sy: float | None = None)
 
 
 def pixel_rays(
-    camera_to_world: np.ndarray, intrinsics: np.ndarray, width: int, height: int
+    camera_to_world: np.ndarray, intrinsics: np.ndarray, width: int, height: int, distortion=None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """World-space rays through every pixel centre of one pinhole camera.
+    """World-space rays through every pixel centre of one pinhole camera, or of an OpenCV lens.
 
+    `distortion` (k1, k2, p1, p2) makes the pixels those of a lens with that distortion (OpenCV's
+    model, as COLMAP's OPENCV camera): each pixel's ray is its undistorted normalized coordinate.
     Returns origins and unit directions, each (height, width, 3), row-major like the image.
     """
     fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
     u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
-    directions_cam = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], axis=-1)
+    if distortion is not None and np.any(np.asarray(distortion) != 0):
+        x, y = undistort_normalized(u, v, intrinsics, distortion)
+        directions_cam = np.stack([x, y, np.ones_like(u)], axis=-1)
+    else:
+        directions_cam = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], axis=-1)
     rotation = np.asarray(camera_to_world, dtype=np.float64)[:3, :3]
     directions = directions_cam @ rotation.T
     directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
     origins = np.broadcast_to(np.asarray(camera_to_world)[:3, 3], directions.shape).copy()
     return origins, directions
+
+
+def undistort_normalized(u: np.ndarray, v: np.ndarray, intrinsics, distortion,
+                         iterations: int = 100) -> tuple[np.ndarray, np.ndarray]:
+    """Pinhole normalized coordinates (x, y) of pixel positions (u, v) seen through an OpenCV lens.
+
+    Inverts x_d = x (1 + k1 r^2 + k2 r^4) + 2 p1 x y + p2 (r^2 + 2 x^2),
+            y_d = y (1 + k1 r^2 + k2 r^4) + p1 (r^2 + 2 y^2) + 2 p2 x y
+    by OpenCV's fixed-point iteration, run to convergence: the 5 iterations of cv2.undistortPoints
+    leave pixel-sized errors at the corners of a strong lens (and its iterative variant has no
+    Python binding).
+    """
+    fx, fy, cx, cy = (float(c) for c in intrinsics)
+    k1, k2, p1, p2 = (float(c) for c in distortion)
+    xd, yd = (np.asarray(u, np.float64) - cx) / fx, (np.asarray(v, np.float64) - cy) / fy
+    x, y = xd.copy(), yd.copy()
+    for _ in range(iterations):
+        r2 = x * x + y * y
+        radial = 1.0 + k1 * r2 + k2 * r2 * r2
+        x_new = (xd - 2 * p1 * x * y - p2 * (r2 + 2 * x * x)) / radial
+        y_new = (yd - p1 * (r2 + 2 * y * y) - 2 * p2 * x * y) / radial
+        step = max(float(np.abs(x_new - x).max(initial=0)), float(np.abs(y_new - y).max(initial=0)))
+        x, y = x_new, y_new
+        if step < 1e-13:
+            break
+    return x, y
 
 
 def project_points(points_world: np.ndarray, camera_to_world: np.ndarray, intrinsics: np.ndarray):

@@ -1,4 +1,5 @@
-"""Device choice, in one place: CUDA when present, otherwise the CPU."""
+"""Device choice, in one place: CUDA when present, otherwise the CPU; and the seeded random
+draws (`rand`, `randint`, `randperm`) that work whatever device their result goes to."""
 
 from __future__ import annotations
 
@@ -40,3 +41,61 @@ def keep_freed_memory() -> bool:
         return False
     m_trim_threshold, m_mmap_max = -1, -4  # mallopt parameters from <malloc.h>
     return bool(libc.mallopt(m_mmap_max, 0)) and bool(libc.mallopt(m_trim_threshold, 1 << 30))
+
+
+# ----------------------------------------------------------------------------- random draws
+# Every seeded random draw in srfpipe/ goes through these helpers: tests/test_device.py fails on
+# any other call that passes `generator=`.
+
+
+def _draw_device(generator):
+    return generator.device if generator is not None else "cpu"
+
+
+def _size(shape) -> tuple:
+    """A size tuple from an int (a numpy integer too) or a sequence of them."""
+    import operator
+
+    return (operator.index(shape),) if hasattr(shape, "__index__") else tuple(operator.index(s) for s in shape)
+
+
+def _moved(values, device):
+    # non_blocking only towards an accelerator: a copy from host memory is safe to queue, while a
+    # non-blocking copy *to* the CPU may be read before it has landed
+    import torch
+
+    device = torch.device(device)
+    return values.to(device, non_blocking=device.type != "cpu")
+
+
+def rand(shape, generator, device, dtype=None):
+    """Uniform [0, 1) values of `shape`, drawn on `generator`'s device and moved to `device`.
+
+    Why not torch.rand(shape, generator=generator, device=device): a torch.Generator draws only on
+    its own device, so a CPU generator with a CUDA `device` raises "Expected a 'cuda' device type
+    for generator but found 'cpu'" (issue 31). Drawing on the generator's device instead (the CPU
+    for the per-step generators of `srfpipe.srf.trainer.step_generator`) and moving the result
+    also gives a seed the same samples (rays, jitter, cells) whether the model sits on the CPU or
+    on CUDA, and a resumed run replays the same stream. Without a generator (None) the draw
+    comes from torch's global CPU generator (seeded by torch.manual_seed), likewise moved.
+    """
+    import torch
+
+    return _moved(torch.rand(_size(shape), generator=generator, device=_draw_device(generator), dtype=dtype), device)
+
+
+def randint(low: int, high: int, shape, generator, device):
+    """int64 values uniform in [low, high) of `shape`, drawn on `generator`'s device (the CPU
+    without one) and moved to `device`; see `rand` for why."""
+    import torch
+
+    return _moved(torch.randint(int(low), int(high), _size(shape), generator=generator,
+                                device=_draw_device(generator)), device)
+
+
+def randperm(n: int, generator, device):
+    """A random permutation of 0..n-1 (int64), drawn on `generator`'s device (the CPU without one)
+    and moved to `device`; see `rand` for why."""
+    import torch
+
+    return _moved(torch.randperm(int(n), generator=generator, device=_draw_device(generator)), device)

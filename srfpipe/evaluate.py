@@ -7,6 +7,10 @@ opacity), like the paper's figure 1, and the training curve (`training_curve.svg
 IoU is computed on label images: a pixel takes the most probable class whose probability
 is >= 0.5, background otherwise; `miou` averages over the trained classes and background.
 
+A generalization check: a few training views (`evaluate.train_views`, evenly spaced) are rendered
+the same way and scored (`train_view_psnr`, no renders written); `generalization_gap_db` is that
+minus the held-out `psnr`, and a gap above GENERALIZATION_GAP_DB sets `overfit` and logs a warning.
+
 A field with zero classes (a capture without masks) has nothing to segment and no reference
 labels to say which pixels are objects: its metrics are `psnr` and `ssim` only (no `psnr_object`,
 no IoU keys; accumulation is no stand-in for objects, since with a contracted background every
@@ -49,7 +53,8 @@ def run(args) -> int:
 
         torch.set_num_threads(args.threads)
     metrics = evaluate(args.images, args.labels, args.srf, args.out, options, device=args.device)
-    summary = {k: metrics[k] for k in ("psnr", "psnr_object", "ssim", "miou", "miou_gt", "floater_fraction")
+    summary = {k: metrics[k] for k in ("psnr", "psnr_object", "ssim", "miou", "miou_gt", "floater_fraction",
+                                       "train_view_psnr", "generalization_gap_db", "overfit")
                if k in metrics}
     print(json.dumps(summary))
     return 0
@@ -117,6 +122,38 @@ def default_supersample(width: int, height: int, asked: int | None) -> int:
     return 2 if 4 * width * height <= SUPERSAMPLE_MAX_RAYS else 1
 
 
+# A field that scores this much higher on views it trained on than on held-out ones fits the
+# training views with floaters / fog in front of the cameras rather than the scene's surfaces
+# (the views it was fitted to look right, a new viewpoint does not): issue 30's threshold.
+GENERALIZATION_GAP_DB = 6.0
+
+# training views rendered for the generalization check when evaluate.train_views is not given
+DEFAULT_TRAIN_VIEWS = 3
+
+# the held-out psnr's floor on the mean squared error (1e-12: 120 dB for a perfect render)
+_MSE_FLOOR = 1e-12
+
+
+def train_view_choice(train: np.ndarray, count: int) -> np.ndarray:
+    """`count` of the training views `train`, evenly spaced (the centres of `count` equal parts of
+    the list, so neither end is favoured); all of them when there are no more; none for 0."""
+    train = np.asarray(train)
+    count = max(0, min(int(count), len(train)))
+    if count == 0:
+        return train[:0]
+    return train[((np.arange(count) + 0.5) * len(train) / count).astype(int)]
+
+
+def pooled_psnr(renders: list[np.ndarray], targets: list[np.ndarray]) -> float:
+    """PSNR over all pixels of all `renders` against their `targets` (one mean squared error, like
+    the held-out `psnr`, with its 1e-12 floor), via srfpipe.srf.metrics.psnr."""
+    from srfpipe.srf import metrics
+
+    value = metrics.psnr(np.concatenate([r.reshape(-1, 3) for r in renders]),
+                         np.concatenate([t.reshape(-1, 3) for t in targets]))
+    return min(value, -10 * np.log10(_MSE_FLOOR))
+
+
 def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) -> dict:
     """Metrics and renders of `field` on the held-out views of `data` (`PosedImages`), into `out`.
 
@@ -125,6 +162,8 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
     to the world through `data`'s own scene frame, so a field of another build measures them too); `labels`
     and `srf` are the paths the data and the field came from (for messages and the record).
     `curves`, srf.zarr's (curve, eval_curve), adds the training curve (`training_curve.svg`).
+    `options["train_views"]` training views (default DEFAULT_TRAIN_VIEWS) are rendered the same way
+    for `train_view_psnr`, `generalization_gap_db` and `overfit` (see GENERALIZATION_GAP_DB).
     """
     from srfpipe.figures import metrics_html, training_curve_svg
 
@@ -145,8 +184,17 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
         raise ValueError(
             f"{srf}: trained with holdout_every={field.attrs.get('holdout_every')}, evaluate asks for {holdout}"
         )
-    _, heldout = split_views(data.count, holdout)
+    train, heldout = split_views(data.count, holdout)
+    train_chosen = train_view_choice(train, options.get("train_views", DEFAULT_TRAIN_VIEWS))
     supersample = default_supersample(data.width, data.height, options.get("supersample"))
+
+    def render_view(index):
+        """The render of view `index` and its captured image (float64 in [0, 1])."""
+        # the views' own frame: a field trained on other labels of the same capture has another
+        pose_world = world_from_scene_pose(data.world_from_scene, data.poses_scene[index].numpy())
+        rendered = field.render(pose_world, data.intrinsics[index].numpy(), data.width, data.height, supersample)
+        return rendered, data.images[index].numpy().astype(np.float64) / 255.0
+
     c = len(data.classes)
     semantic = c > 0
     colours = class_colours(data.classes, meta(open_artifact(labels, stage="composite")))
@@ -158,10 +206,7 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
     with atomic_directory(out) as tmp:
         (tmp / "renders").mkdir()
         for index in heldout:
-            # the views' own frame: a field trained on other labels of the same capture has another
-            pose_world = world_from_scene_pose(data.world_from_scene, data.poses_scene[index].numpy())
-            result = field.render(pose_world, data.intrinsics[index].numpy(), data.width, data.height, supersample)
-            target = data.images[index].numpy().astype(np.float64) / 255.0
+            result, target = render_view(index)
             err = (result["rgb"].astype(np.float64) - target) ** 2
             sq_err += float(err.sum())
             if "floater_samples" in result:
@@ -176,7 +221,8 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
             if semantic:
                 pred_label = metrics.label_from_probabilities(result["semantic"])
                 reference = data.label[index]
-                conf += metrics.confusion(pred_label, reference, c + 1)
+                if data.labelled is None or data.labelled[index]:  # a frame without masks has no reference
+                    conf += metrics.confusion(pred_label, reference, c + 1)
                 if data.gt_label is not None:
                     reference = remap_ground_truth(data.gt_label[index], data.gt_classes, data.classes)
                     conf_gt += metrics.confusion(pred_label, reference, c + 1)
@@ -193,6 +239,17 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
             "psnr": -10 * np.log10(max(sq_err / n_values, 1e-12)),
             "ssim": float(np.mean([v["ssim"] for v in per_view])),
         }
+        # the generalization check: the same renders of a few training views (numbers only)
+        train_rgb, train_target = [], []
+        for index in train_chosen:
+            rendered, target = render_view(index)
+            train_rgb.append(rendered["rgb"])
+            train_target.append(target)
+        train_psnr = pooled_psnr(train_rgb, train_target) if train_rgb else None
+        gap = train_psnr - result["psnr"] if train_psnr is not None else None
+        result.update({"train_view_names": [data.names[i] for i in train_chosen],
+                       "train_view_psnr": train_psnr, "generalization_gap_db": gap,
+                       "overfit": bool(gap is not None and gap > GENERALIZATION_GAP_DB)})
         if significant:
             # fog and floaters: of the samples that carry weight (> 0.03), the share that lies
             # off the surface each ray sees (srfpipe.srf.model.FLOATER_CELLS from its median depth)
@@ -219,6 +276,10 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
             (tmp / "training_curve.svg").write_text(training_curve_svg(*curves))
     log.info("psnr %.2f ssim %.3f%s", result["psnr"], result["ssim"],
              f" miou {result['miou']:.3f}" if semantic else " (no classes: no IoU)")
+    if result["overfit"]:
+        log.warning("%s: fits the training views, not new ones: training views %.1f dB, held-out %.1f dB "
+                    "(gap %.1f dB > %g)", srf, result["train_view_psnr"], result["psnr"],
+                    result["generalization_gap_db"], GENERALIZATION_GAP_DB)
     return result
 
 

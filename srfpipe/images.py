@@ -51,6 +51,28 @@ def opencv_camera_matrix(intrinsics) -> np.ndarray:
     return cameras.intrinsic_matrix(fx, fy, cx - 0.5, cy - 0.5)
 
 
+def undistorted_intrinsics(intrinsics, distortion, size) -> np.ndarray:
+    """(fx, fy, cx, cy) of the pinhole image that undistortion makes of a frame: every pixel valid.
+
+    Undistorting onto the lens's own K leaves pixels whose source lies outside the frame (black
+    wedges along the edges: 1.5 % of a 605x806 phone frame with p1 0.011, p2 0.0096). Trained as
+    content they are a black border that moves with the camera, which the field can only explain
+    with floaters, and held-out views are scored against it. OpenCV's optimal new camera matrix
+    with alpha 0 scales and shifts K so that the undistorted image holds valid pixels only (as
+    COLMAP's image undistorter does). No distortion: the intrinsics as they are.
+    """
+    import cv2
+
+    intrinsics = np.asarray(intrinsics, dtype=np.float64)
+    if not np.any(np.asarray(distortion) != 0):
+        return intrinsics
+    size = tuple(int(v) for v in size)
+    new, _ = cv2.getOptimalNewCameraMatrix(opencv_camera_matrix(intrinsics), np.asarray(distortion, np.float64),
+                                           size, 0.0, size)
+    # back from OpenCV's pixel-index principal point to the pixel-edge convention of intrinsics
+    return np.array([new[0, 0], new[1, 1], new[0, 2] + 0.5, new[1, 2] + 0.5])
+
+
 class Undistorter:
     """Undistortion maps for one calibration, reused while consecutive frames share it."""
 
@@ -64,9 +86,10 @@ class Undistorter:
         key = (tuple(np.asarray(intrinsics).tolist()), tuple(np.asarray(distortion).tolist()), tuple(size))
         if key != self._key:
             k = opencv_camera_matrix(intrinsics)
-            # newCameraMatrix = K: the undistorted image is a pinhole image with the same intrinsics
+            # the undistorted image is a pinhole image with undistorted_intrinsics (all pixels valid)
+            new = opencv_camera_matrix(undistorted_intrinsics(intrinsics, distortion, size))
             self._maps = cv2.initUndistortRectifyMap(
-                k, np.asarray(distortion, np.float64), None, k, tuple(int(v) for v in size), cv2.CV_32FC1
+                k, np.asarray(distortion, np.float64), None, new, tuple(int(v) for v in size), cv2.CV_32FC1
             )
             self._key = key
         return self._maps
@@ -77,8 +100,8 @@ class Undistorter:
         if not np.any(np.asarray(distortion) != 0):
             return image
         map_x, map_y = self.maps(intrinsics, distortion, (image.shape[1], image.shape[0]))
-        border = cv2.BORDER_CONSTANT
-        return cv2.remap(image, map_x, map_y, interpolation, borderMode=border, borderValue=0)
+        # a map entry within a pixel of the edge stays inside: replicate, not black
+        return cv2.remap(image, map_x, map_y, interpolation, borderMode=cv2.BORDER_REPLICATE)
 
 
 EXIF_ORIENTATION_TAG = 0x0112
@@ -265,7 +288,8 @@ def downscale_images(poses_path: str | Path, options: dict, out: str | Path, pro
                 f"{width}x{height} ({root / image_paths[0]}); all images of a capture must share one size"
             )
     scaled = np.stack([
-        cameras.scale_intrinsics(k, width / w, height / h) for k, (w, h) in zip(intrinsics, image_size)
+        cameras.scale_intrinsics(undistorted_intrinsics(k, d, (w, h)), width / w, height / h)
+        for k, d, (w, h) in zip(intrinsics, distortion, image_size)
     ])
     ground_truth = Path(info["ground_truth"]) if info.get("ground_truth") else None
     gt_files = _ground_truth_files(ground_truth, image_paths) if ground_truth else None

@@ -82,3 +82,12 @@ def job_counts(dry_run_stdout: str) -> dict[str, int]:
 @pytest.fixture
 def workflow(tmp_path) -> Workflow:
     return Workflow(tmp_path / "work")
+
+
+@pytest.fixture(scope="session")
+def device():
+    """The torch device for tests that train or render: CUDA when torch sees a GPU, else the CPU
+    (session-wide, so module-scoped fixtures can take it too)."""
+    from srfpipe.device import choose_device
+
+    return choose_device("auto")

@@ -65,3 +65,22 @@ def test_bad_bounds_and_rotations_are_named():
 def test_intrinsics_scale_with_pixel_centres():
     scaled = cameras.scale_intrinsics(np.array([100.0, 100.0, 320.0, 240.0]), 0.25)
     np.testing.assert_allclose(scaled, [25.0, 25.0, 80.0, 60.0])
+
+
+def test_rays_of_a_lens_pass_through_what_the_lens_projects_to_each_pixel():
+    """pixel_rays with OpenCV distortion inverts cv2.projectPoints: the generator's lens renders
+    exactly what a COLMAP OPENCV calibration describes."""
+    import cv2
+
+    width, height = 61, 81
+    k = np.array([52.0, 52.0, 30.5, 40.5])
+    distortion = np.array([-0.0024, -0.021, 0.011, 0.0096])  # a phone's strong tangential terms
+    pose = np.eye(4)
+    origins, directions = cameras.pixel_rays(pose, k, width, height, distortion)
+    points = (directions / directions[..., 2:]).reshape(-1, 3) * 3.0  # depth 3 along each ray
+    k_cv = cameras.intrinsic_matrix(k[0], k[1], k[2] - 0.5, k[3] - 0.5)
+    projected, _ = cv2.projectPoints(points, np.zeros(3), np.zeros(3), k_cv, distortion)
+    v, u = np.mgrid[0:height, 0:width]
+    np.testing.assert_allclose(projected.reshape(height, width, 2), np.stack([u, v], -1), atol=1e-6)
+    pinhole = cameras.pixel_rays(pose, k, width, height)[1]
+    assert np.degrees(np.arccos(np.clip((pinhole * directions).sum(-1), -1, 1))).max() > 0.5  # it matters

@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import logging
 
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from srfpipe.artifacts import read_provenance
+from srfpipe.batch import summary_lines
 from srfpipe.cameras import pixel_rays
-from srfpipe.evaluate import default_supersample, evaluate_field
+from srfpipe.evaluate import GENERALIZATION_GAP_DB, default_supersample, evaluate_field
 from srfpipe.segment.composite import composite_masks
 from srfpipe.srf import synthetic
 from srfpipe.srf.data import load_posed_images
@@ -116,6 +120,64 @@ def test_a_field_from_other_labels_of_the_same_capture_sees_the_views_where_they
     field.world_from_scene = other_frame @ field.world_from_scene  # the field's own frame differs
     saved = evaluate_field(field, data, folder / "eval_other_frame", CENTRES, labels, "exact")
     assert saved["psnr"] > 45 and saved["miou_gt"] > 0.9
+
+
+def test_training_views_are_scored_like_the_held_out_ones_and_give_the_gap(scene):
+    """A few evenly spaced training views go through the same render; only numbers are kept."""
+    folder, images, labels = scene
+    data = load_posed_images(images, labels)
+    out = folder / "eval_train_views"
+    returned = evaluate_field(ExactField(images, data.classes), data, out, CENTRES, labels, "exact")
+    saved = json.loads((out / "metrics.json").read_text())
+    # 8 views, every 4th held out: training views 1 2 3 5 6 7, three evenly spaced of them
+    assert saved["train_view_names"] == ["frame_00002", "frame_00005", "frame_00007"]
+    for key in ("psnr", "train_view_psnr", "generalization_gap_db"):
+        assert isinstance(saved[key], float) and np.isfinite(saved[key]), key
+    assert saved["generalization_gap_db"] == pytest.approx(saved["train_view_psnr"] - saved["psnr"])
+    assert returned["train_view_psnr"] == pytest.approx(saved["train_view_psnr"])
+    # exact renders of every view: both only 8-bit rounding off, no gap
+    assert saved["train_view_psnr"] > 45 and abs(saved["generalization_gap_db"]) < 3
+    assert saved["overfit"] is False
+    assert sorted(path.name for path in (out / "renders").iterdir()) == ["frame_00000.png", "frame_00004.png"]
+
+    off = evaluate_field(ExactField(images, data.classes), data, folder / "eval_train_views_off",
+                         {**CENTRES, "train_views": 0}, labels, "exact")
+    assert off["train_view_names"] == [] and off["train_view_psnr"] is None
+    assert off["generalization_gap_db"] is None and off["overfit"] is False
+    assert off["psnr"] == pytest.approx(saved["psnr"])
+
+
+def test_a_field_that_matches_only_the_training_views_is_flagged_and_the_summary_says_so(scene, tmp_path, caplog):
+    """Held-out images replaced by noise: the field still renders the training views exactly but
+    none of the held-out ones, so the gap is far above GENERALIZATION_GAP_DB."""
+    folder, images, labels = scene
+    data = load_posed_images(images, labels)
+    noisy = data.images.clone()
+    generator = torch.Generator().manual_seed(0)
+    for index in range(0, VIEWS, HOLDOUT):
+        noisy[index] = torch.randint(0, 256, noisy[index].shape, generator=generator, dtype=torch.uint8)
+    results = tmp_path / "results"
+    field = ExactField(images, data.classes)
+    with caplog.at_level(logging.WARNING, logger="srfpipe.evaluate"):
+        overfit = evaluate_field(field, dataclasses.replace(data, images=noisy), results / "noisy" / "eval",
+                                 CENTRES, labels, "exact")
+    assert overfit["overfit"] is True
+    assert overfit["generalization_gap_db"] > GENERALIZATION_GAP_DB and overfit["train_view_psnr"] > 45
+    warning = (f"fits the training views, not new ones: training views {overfit['train_view_psnr']:.1f} dB, "
+               f"held-out {overfit['psnr']:.1f} dB (gap {overfit['generalization_gap_db']:.1f} dB > 6)")
+    assert any(warning in record.getMessage() for record in caplog.records if record.levelno == logging.WARNING)
+
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="srfpipe.evaluate"):
+        fine = evaluate_field(field, data, results / "exact" / "eval", CENTRES, labels, "exact")
+    assert fine["overfit"] is False
+    assert not [record for record in caplog.records if "fits the training views" in record.getMessage()]
+
+    lines = summary_lines(["noisy", "exact"], results, tmp_path / "logs", chain=("eval",))
+    assert lines[0].startswith("noisy  done") and lines[1].startswith("exact  done")
+    assert (f"fits the training views, not new ones (train {overfit['train_view_psnr']:.1f} dB, "
+            f"held-out {overfit['psnr']:.1f} dB)") in lines[0]
+    assert "fits the training views" not in lines[1]
 
 
 def test_depth_image_orders_near_to_far_and_blanks_missing_depth():

@@ -44,7 +44,9 @@ def test_hull_of_a_small_far_object_is_tight_and_contains_it():
     assert np.all(box[0] <= CENTRE - RADIUS) and np.all(box[1] >= CENTRE + RADIUS), box
     true_volume = (2 * RADIUS) ** 3
     ratio = np.prod(box[1] - box[0]) / true_volume
-    assert ratio <= 3.0, (ratio, box)
+    # a ring of views carves a ball loosely above and below, and the carve keeps every cell a
+    # mask touches (a thin stalk must survive), so the box is looser than the ball's cube
+    assert ratio <= 3.5, (ratio, box)
     assert record["volume_vs_poses_bounds"] < 0.01
 
 
@@ -60,3 +62,34 @@ def test_empty_masks_keep_the_poses_bounds():
     poses, intrinsics, size = ring_cameras()
     masks = [np.zeros((size, size), bool) for _ in poses]
     assert bounds_from_masks(poses, intrinsics, masks, np.stack([CENTRE - 60.0, CENTRE + 60.0])) is None
+
+
+def stick_mask(pose, k, size, start, end, radius):
+    """Pixels whose ray passes within `radius` of the segment start-end (a thin stalk)."""
+    origins, directions = cameras.pixel_rays(pose, k, size, size)
+    samples = np.linspace(0.0, 1.0, 200)[:, None] * (end - start) + start  # points along the stalk
+    uv, depth = cameras.project_points(samples, pose, k)
+    mask = np.zeros((size, size), bool)
+    focal = k[0]
+    for (u, v), z in zip(uv, depth):
+        r = max(focal * radius / z, 0.8)  # at least a line of pixels
+        ys, xs = np.ogrid[:size, :size]
+        mask |= (xs + 0.5 - u) ** 2 + (ys + 0.5 - v) ** 2 <= r * r
+    return mask
+
+
+def test_hull_keeps_a_stalk_thinner_than_its_cells_that_some_masks_miss():
+    # a ball carried by a stalk 10 units long and 0.1 thick: under a pixel wide in these views
+    # and thinner than a cell of either carve; the stalk drops out of every fifth view's mask
+    poses, intrinsics, size = ring_cameras(views=20, size=96, fov_deg=5.0)
+    tip = CENTRE + np.array([0.0, 0.0, RADIUS + 10.0])
+    masks = []
+    for i, (p, k) in enumerate(zip(poses, intrinsics)):
+        mask = ball_mask(p, k, size)
+        if i % 5:
+            mask |= stick_mask(p, k, size, CENTRE, tip, 0.05)
+        masks.append(mask)
+    box, record = bounds_from_masks(poses, intrinsics, masks, np.stack([CENTRE - 60.0, CENTRE + 60.0]))
+    assert record["grid_spacing"] > 0.1  # the stalk is thinner than a cell of the finer carve
+    assert box[1, 2] >= tip[2] - 0.5, (box, tip)  # the stalk's tip is inside the box
+    assert np.prod(box[1] - box[0]) < 0.05 * 120.0**3  # and the box still hugs the object

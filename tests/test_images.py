@@ -13,7 +13,7 @@ import pytest
 from srfpipe import cameras
 from srfpipe.artifacts import meta, open_artifact
 from srfpipe.config import validate_scene
-from srfpipe.images import default_downscale, downscale_images, exif_orientation, read_rgb
+from srfpipe.images import Undistorter, default_downscale, downscale_images, exif_orientation, read_rgb
 from srfpipe.poses import import_poses, load_capture
 from test_poses import edit_transforms, ring, write_nerfstudio
 
@@ -96,7 +96,11 @@ def test_undistortion_moves_points_to_pinhole_projection(tmp_path):
 
     out = downscale_images(poses_zarr(tmp_path, capture), {"downscale": 1}, tmp_path / "images.zarr", progress=False)
     undistorted = open_artifact(out)["images"][0, ..., 0].astype(np.float64)
-    expected, _ = cameras.project_points(points_world, pose, np.array(k))  # pinhole, centres at +0.5
+    # pinhole (centres at +0.5) with the intrinsics images.zarr records: the lens's K, scaled and
+    # shifted so that every undistorted pixel has a source
+    pinhole = open_artifact(out)["intrinsics"][0]
+    assert np.abs(np.asarray(pinhole) - k).max() < 0.2 * k[0]  # k1 -0.25: the widest view with no pixel lost
+    expected, _ = cameras.project_points(points_world, pose, pinhole)
     shift = np.linalg.norm(distorted + 0.5 - expected, axis=1)
     assert shift.max() > 5.0  # the distortion is large enough to matter
     for x, y in expected:
@@ -105,6 +109,26 @@ def test_undistortion_moves_points_to_pinhole_projection(tmp_path):
         wv, wu = np.mgrid[cy - 4:cy + 5, cx - 4:cx + 5]
         centroid = np.array([(window * wu).sum(), (window * wv).sum()]) / window.sum() + 0.5
         np.testing.assert_allclose(centroid, [x, y], atol=0.35)
+
+
+def test_undistortion_leaves_no_pixel_without_a_source(tmp_path):
+    """A strong tangential lens (a phone's COLMAP calibration): the undistorted frame is all image,
+    no black wedge along its edges that training would take for content."""
+    width, height = 121, 161
+    k = (105.0, 105.0, 60.5, 80.5)
+    distortion = (-0.0024, -0.021, 0.011, 0.0096)
+    capture = write_nerfstudio(tmp_path / "cap", ring(2), width=width, height=height, intrinsics=k,
+                               distortion=distortion)
+    for name in ("frame_00000", "frame_00001"):
+        cv2.imwrite(str(capture / "images" / f"{name}.png"), np.full((height, width, 3), 200, np.uint8))
+    out = downscale_images(poses_zarr(tmp_path, capture), {"downscale": 1}, tmp_path / "images.zarr", progress=False)
+    images = np.asarray(open_artifact(out)["images"][:])
+    assert images.min() == 200, np.argwhere(images < 200)[:5]
+    # every undistorted pixel samples the frame itself (within half a pixel of its edge), not a border
+    map_x, map_y = Undistorter().maps(k, distortion, (width, height))
+    assert map_x.min() >= -0.5 and map_x.max() <= width - 0.5 and map_y.min() >= -0.5 and map_y.max() <= height - 0.5
+    # and nothing is thrown away needlessly: the frame's edge is reached on some side
+    assert min(map_x.min() + 0.5, width - 0.5 - map_x.max(), map_y.min() + 0.5, height - 0.5 - map_y.max()) < 1.0
 
 
 @pytest.mark.bad_input

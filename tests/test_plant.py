@@ -7,6 +7,8 @@ into images.zarr and read back by the SRF data loader, masks imported from its l
 
 from __future__ import annotations
 
+import json
+
 import cv2
 import numpy as np
 import pytest
@@ -178,6 +180,7 @@ def test_plant_and_orchard_scenes_each_get_their_own_capture_rule(workflow):
 @pytest.mark.workflow
 def test_shipped_plant_scene_to_labels(workflow):
     """The shipped scene file builds: bounds from the data, class names carried, masks from the labels."""
+    from srfpipe.segment.composite import composite_masks
     from srfpipe.srf.data import load_posed_images
 
     workflow.write_scene("plant", _plant_scene())
@@ -198,6 +201,22 @@ def test_shipped_plant_scene_to_labels(workflow):
     np.testing.assert_array_equal(data.label, lookup[truth])
     assert set(data.classes) >= {"leaf", "berry"}
     assert (workflow.root / "logs" / "plant" / "plant_capture.log").exists()
+    # geometry from the cameras, not the masks: the model keeps the frusta's box; the masks' hull
+    # is the semantic region, around the plant and inside the box
+    truth_scene = json.loads((results / "capture" / "ground_truth" / "scene.json").read_text())
+    obj_lo, obj_hi = (np.array(b) for b in truth_scene["object_bounds_world"])
+    assert data.bounds_source == "frusta" and not data.background_empty
+    region = data.semantic_bounds_world
+    assert np.all(region[0] <= obj_lo + 1.0) and np.all(region[1] >= obj_hi - 1.0), (region, obj_lo, obj_hi)
+    assert np.prod(region[1] - region[0]) < 0.5 * np.prod(data.bounds_world[1] - data.bounds_world[0])
+    # a capture that says its background is empty gets the hull as its box (and the penalty)
+    masks = sorted(str(m) for m in (results / "masks").glob("*.zarr"))
+    order = [str(results / "masks" / f"{name}.zarr") for name in _plant_scene()["segmentation"]["prompts"]]
+    composite_masks(results / "images.zarr", [m for m in order if m in masks], {"background": "empty"},
+                    workflow.root / "empty.zarr", progress=False)
+    empty = load_posed_images(results / "images.zarr", workflow.root / "empty.zarr")
+    assert empty.bounds_source == "mask_hull" and empty.background_empty
+    np.testing.assert_allclose(empty.bounds_world, region)
 
 
 def test_images_zarr_without_class_names_reads_as_an_orchard(tmp_path):

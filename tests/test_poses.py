@@ -1,4 +1,4 @@
-"""Pose import (nerfstudio, Blender, COLMAP, orchard), validation errors, bounds, normalization, refinement."""
+"""Pose import (nerfstudio, Blender, COLMAP, LLFF, orchard), validation errors, bounds, normalization, refinement."""
 
 from __future__ import annotations
 
@@ -22,6 +22,7 @@ from srfpipe.poses import (
     pose_errors,
     read_blender,
     read_colmap,
+    read_llff,
     read_nerfstudio,
 )
 from srfpipe.poses.colmap_refine import pairs_from_poses
@@ -431,7 +432,7 @@ def test_cli_reports_bad_input_in_one_line(tmp_path, capsys):
 
 # Each module of srfpipe/poses may import only modules before it: the importers and the bounds build
 # on `capture`, the refinement on `align`, and only the stage ties everything together.
-POSES_MODULE_ORDER = ["capture", "bounds", "align", "nerfstudio", "blender", "colmap", "ground_truth",
+POSES_MODULE_ORDER = ["capture", "bounds", "align", "nerfstudio", "blender", "colmap", "llff", "ground_truth",
                       "colmap_refine", "stage"]
 
 
@@ -597,3 +598,203 @@ def test_colmap_refinement_repairs_perturbed_poses(tmp_path, matcher):
     points = cameras.transform_points(align_poses(group["camera_to_world"][:], truth), group["points_world"][:])
     assert np.median(np.abs(points).min(axis=1)) < 0.005
     assert not list(tmp_path.glob(".colmap-refine-*"))  # the scratch database is gone
+
+
+# ----------------------------------------------------------------------------- LLFF poses_bounds.npy
+
+
+def forward_facing(n: int = 4) -> np.ndarray:
+    """OpenCV camera_to_world of `n` cameras on a small plane at z = 0, all looking at (0, 0, 10)."""
+    return np.stack([look_at([0.4 * (i % 2) - 0.2, 0.3 * i - 0.5, 0.0], [0.0, 0.0, 10.0], up=(0.0, -1.0, 0.0))
+                     for i in range(n)])
+
+
+def llff_rows(poses_cv: np.ndarray, width: int, height: int, focal: float, near_far=(2.0, 30.0)) -> np.ndarray:
+    """poses_bounds.npy rows for OpenCV poses: LLFF's camera axes are down, right, backwards, i.e.
+    the OpenCV columns (y, x, -z); then the original images' height, width, focal, and near, far."""
+    rows = []
+    for pose in poses_cv:
+        rotation = np.stack([pose[:3, 1], pose[:3, 0], -pose[:3, 2]], axis=1)
+        matrix = np.concatenate([rotation, pose[:3, 3:4], [[height], [width], [focal]]], axis=1)
+        rows.append(np.concatenate([matrix.ravel(), near_far]))
+    return np.asarray(rows)
+
+
+def write_llff(root: Path, poses_cv: np.ndarray, original=(64, 48), focal=60.0,
+               folders=(("images_4", 4),)) -> Path:
+    """An LLFF capture: poses_bounds.npy for `original` (width, height) images and, per
+    (folder, factor), noise PNGs downscaled by factor. Files sort like the rows (LLFF's pairing)."""
+    root.mkdir(parents=True, exist_ok=True)
+    names = [f"IMG_{i:04d}.png" for i in range(len(poses_cv))]
+    for folder, factor in folders:
+        write_noise_images(root / folder, names, original[0] // factor, original[1] // factor)
+    np.save(root / "poses_bounds.npy", llff_rows(poses_cv, *original, focal))
+    return root
+
+
+def test_llff_import_converts_axes_and_scales_intrinsics(tmp_path):
+    truth = forward_facing()
+    write_llff(tmp_path, truth)
+    capture = read_llff(tmp_path)
+    assert capture.source_format == "llff" and capture.source_file == tmp_path / "poses_bounds.npy"
+    assert capture.image_paths == [f"images_4/IMG_{i:04d}.png" for i in range(4)]
+    np.testing.assert_allclose(capture.camera_to_world, truth, atol=1e-9)
+    # 16x12 images of 64x48 originals: focal 60 / 4, principal point at the centre, no distortion
+    np.testing.assert_allclose(capture.intrinsics, np.tile([15.0, 15.0, 8.0, 6.0], (4, 1)))
+    assert capture.image_size.tolist() == [[16, 12]] * 4
+    assert not capture.distortion.any() and capture.points_world is None
+    assert capture.extra["near_far"] == [[2.0, 30.0]] * 4
+    assert capture.extra["llff_original_size"] == [64.0, 48.0]
+
+
+def test_llff_projection_matches_llff_camera_axes(tmp_path):
+    """A point given in LLFF's camera frame (down, right, back; the camera looks along -back)
+    projects where a pinhole with LLFF's axes puts it: u = cx + f right / depth, v = cy + f down / depth."""
+    truth = forward_facing()
+    write_llff(tmp_path, truth, folders=(("images", 1),))
+    capture = read_llff(tmp_path)
+    rows = np.load(tmp_path / "poses_bounds.npy")
+    for i, row in enumerate(rows):
+        matrix = row[:15].reshape(3, 5)
+        down, right, back = 0.3, -0.2, -2.5
+        point = matrix[:, :3] @ [down, right, back] + matrix[:, 3]
+        uv, depth = cameras.project_points(point[None], capture.camera_to_world[i], capture.intrinsics[i])
+        np.testing.assert_allclose(depth, [2.5])
+        np.testing.assert_allclose(uv[0], [32.0 + 60.0 * right / 2.5, 24.0 + 60.0 * down / 2.5])
+
+
+def test_llff_images_folder_default_and_override(tmp_path):
+    write_llff(tmp_path, forward_facing(3), folders=(("images", 1), ("images_4", 4), ("images_8", 8)))
+    assert read_llff(tmp_path).image_paths[0] == "images_4/IMG_0000.png"  # images_4 first
+    full = load_capture({"format": "llff", "path": str(tmp_path), "images_dir": "images"})
+    np.testing.assert_allclose(full.intrinsics[0], [60.0, 60.0, 32.0, 24.0])
+    eighth = read_llff(tmp_path, images_dir="images_8")
+    np.testing.assert_allclose(eighth.intrinsics[0], [7.5, 7.5, 4.0, 3.0])
+    assert eighth.image_size[0].tolist() == [8, 6]
+
+
+def test_llff_import_poses_writes_artifact(tmp_path):
+    write_llff(tmp_path / "cap", forward_facing())
+    out = import_poses({"format": "llff"}, tmp_path / "cap", {}, tmp_path / "poses.zarr")
+    group = open_artifact(out, stage="poses")
+    info = meta(group)
+    assert info["source_format"] == "llff" and info["bounds_source"] == "frusta"
+    assert info["source_file"].endswith("poses_bounds.npy") and info["near_far"] == [[2.0, 30.0]] * 4
+    assert group["camera_to_world"].shape == (4, 4, 4) and "points_world" not in group
+
+
+@pytest.mark.bad_input
+def test_llff_wrong_shape_names_file(tmp_path):
+    write_llff(tmp_path, forward_facing(3))
+    npy = tmp_path / "poses_bounds.npy"
+    np.save(npy, np.load(npy)[:, :15])  # the 3x5 matrices without near, far
+    with pytest.raises(ValueError, match=rf"{npy}: expected shape \(N, 17\).*got \(3, 15\)"):
+        read_llff(tmp_path)
+    np.save(npy, np.zeros((3, 3, 5)))
+    with pytest.raises(ValueError, match=rf"{npy}: expected shape \(N, 17\).*got \(3, 3, 5\)"):
+        read_llff(tmp_path)
+    npy.write_bytes(b"not an array")
+    with pytest.raises(ValueError, match=rf"{npy}: not a NumPy .npy array"):
+        read_llff(tmp_path)
+    npy.unlink()
+    with pytest.raises(FileNotFoundError, match=rf"{npy}: file does not exist"):
+        load_capture({"format": "llff", "path": str(tmp_path)})
+
+
+@pytest.mark.bad_input
+def test_llff_count_mismatch_names_file(tmp_path):
+    write_llff(tmp_path, forward_facing(3))
+    (tmp_path / "images_4" / "IMG_0001.png").unlink()
+    with pytest.raises(ValueError, match=rf"{tmp_path / 'poses_bounds.npy'}: mismatched counts: 3 rows for 2 images"):
+        read_llff(tmp_path)
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("column", [3, 14, 16])  # a rotation entry, the focal length, the far bound
+def test_llff_non_finite_values_name_file_and_row(tmp_path, column):
+    write_llff(tmp_path, forward_facing(3))
+    npy = tmp_path / "poses_bounds.npy"
+    rows = np.load(npy)
+    rows[1, column] = np.nan if column != 14 else np.inf
+    np.save(npy, rows)
+    with pytest.raises(ValueError, match=rf"{npy}: row 1 \(of 3\) holds NaN or infinite values"):
+        read_llff(tmp_path)
+
+
+@pytest.mark.bad_input
+def test_llff_missing_image_folder_names_capture(tmp_path):
+    write_llff(tmp_path, forward_facing(3), folders=(("images_8", 8),))
+    with pytest.raises(FileNotFoundError, match=rf"{tmp_path}: no images folder \(images_4 or images\); "
+                                                r"set source.images_dir to one of images_8"):
+        read_llff(tmp_path)
+    with pytest.raises(FileNotFoundError, match=rf"{tmp_path / 'images_2'}: images folder \(source.images_dir\)"):
+        read_llff(tmp_path, images_dir="images_2")
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("images_dir", ["../outside", "/etc"])
+def test_llff_images_dir_outside_capture_is_refused(tmp_path, images_dir):
+    write_llff(tmp_path / "cap", forward_facing(3))
+    write_llff(tmp_path / "outside", forward_facing(3), folders=(("", 4),))
+    with pytest.raises(ValueError, match="points outside the dataset folder"):
+        read_llff(tmp_path / "cap", images_dir=images_dir)
+
+
+@pytest.mark.bad_input
+def test_llff_symlinked_image_outside_capture_is_refused(tmp_path):
+    write_llff(tmp_path / "cap", forward_facing(3))
+    write_noise_images(tmp_path / "elsewhere", ["x.png"], 16, 12)
+    target = tmp_path / "cap" / "images_4" / "IMG_0002.png"
+    target.unlink()
+    target.symlink_to(tmp_path / "elsewhere" / "x.png")
+    with pytest.raises(ValueError, match=r"row 2: file_path 'images_4/IMG_0002.png' is a symlink"):
+        read_llff(tmp_path / "cap")
+    assert len(read_llff(tmp_path / "cap", allowed_roots=[tmp_path / "elsewhere"])) == 3
+
+
+@pytest.mark.bad_input
+def test_llff_image_of_another_aspect_ratio_names_row(tmp_path):
+    write_llff(tmp_path, forward_facing(3))
+    write_noise_images(tmp_path / "images_4", ["IMG_0001.png"], 12, 16)  # rotated
+    with pytest.raises(ValueError, match=r"row 1 \(images_4/IMG_0001.png\): image is 12x16, not the aspect "
+                                         r"ratio of the poses' 64x48"):
+        read_llff(tmp_path)
+
+
+@pytest.mark.bad_input
+def test_llff_bad_rotation_names_row(tmp_path):
+    write_llff(tmp_path, forward_facing(3))
+    npy = tmp_path / "poses_bounds.npy"
+    rows = np.load(npy)
+    rows[2, 0:3] *= 2.0  # first row of the 3x5 matrix: the rotation is no longer orthonormal
+    np.save(npy, rows)
+    with pytest.raises(ValueError, match=r"poses_bounds.npy: row 2 \(images_4/IMG_0002.png\): pose rotation is not"):
+        read_llff(tmp_path)
+
+
+def shared_capture(name: str) -> Path:
+    """A capture of ../shared/data beside the repository (read-only test data, never copied)."""
+    for folder in (Path(__file__).resolve().parents[2] / "shared" / "data" / name, Path("/work/shared/data") / name):
+        if folder.is_dir():
+            return folder
+    pytest.skip(f"{name}: ../shared/data/{name} is not there (test data beside the repository)")
+
+
+def test_llff_real_fern_capture():
+    fern = shared_capture("fern")
+    capture = load_capture({"format": "llff", "path": str(fern)})
+    assert len(capture) == 20 and capture.image_paths[0] == "images_4/image000.png"
+    assert capture.image_size.tolist() == [[1008, 756]] * 20
+    np.testing.assert_allclose(capture.intrinsics[:, :2], 3260.5 / 4, rtol=1e-3)  # 815.1
+    np.testing.assert_allclose(capture.intrinsics[:, 2:], np.tile([504.0, 378.0], (20, 1)))
+    # forward-facing: every camera looks within 15 degrees of the mean viewing direction, and the
+    # scene (LLFF's near bound, 17 to 19 units) lies in front of every camera
+    forward = capture.camera_to_world[:, :3, 2]
+    mean = forward.mean(0) / np.linalg.norm(forward.mean(0))
+    assert np.all(forward @ mean > np.cos(np.radians(15)))
+    near_far = np.asarray(capture.extra["near_far"])
+    assert near_far.shape == (20, 2) and np.all((near_far[:, 0] > 10) & (near_far[:, 1] > near_far[:, 0]))
+    centre = capture.camera_to_world[:, :3, 3].mean(0) + near_far[:, 0].min() * mean
+    for pose, k in zip(capture.camera_to_world, capture.intrinsics):
+        uv, depth = cameras.project_points(centre[None], pose, k)
+        assert depth[0] > 0 and 0 < uv[0, 0] < 1008 and 0 < uv[0, 1] < 756

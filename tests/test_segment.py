@@ -10,6 +10,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import zarr
 import pytest
 
 from srfpipe.artifacts import create_artifact, meta, open_artifact
@@ -268,15 +269,51 @@ def test_import_missing_or_wrongly_sized_mask_names_the_file(tmp_path):
     images = write_images(tmp_path / "images.zarr", red_blue_images(n=2, width=40, height=30), downscale=4)
     folder = tmp_path / "masks"
     folder.mkdir()
-    cv2.imwrite(str(folder / "frame_00000_apple.png"), np.zeros((30, 40), np.uint8))
     opts = options(backend="import", **{"import": {"path": str(folder)}})
-    with pytest.raises(FileNotFoundError, match=r"frame_00001_apple.png: mask file does not exist"):
+    # no frame has a mask: a wrong folder or pattern, not a sparse labelling
+    with pytest.raises(FileNotFoundError, match=r"frame_00000_apple.png: mask file does not exist, nor does any "
+                                                r"other of the 2 frames' masks for prompt 'apple'"):
         segment_images(images, "apple", prompt_options(opts, "apple"), tmp_path / "a.zarr", progress=False)
     assert not (tmp_path / "a.zarr").exists()  # nothing that looks complete
+    cv2.imwrite(str(folder / "frame_00000_apple.png"), np.zeros((30, 40), np.uint8))
     cv2.imwrite(str(folder / "frame_00001_apple.png"), np.zeros((31, 40), np.uint8))
     with pytest.raises(ValueError, match=r"frame_00001_apple.png: mask is 40x31, expected 40x30 "
                                          r"\(the size of images.zarr\) or 160x120 \(full resolution\)"):
         segment_images(images, "apple", prompt_options(opts, "apple"), tmp_path / "a.zarr", progress=False)
+
+
+def test_frames_without_a_mask_are_unlabelled_not_empty(tmp_path):
+    """Masks of some frames only: those frames are recorded as unlabelled, carry no semantic loss
+    and no IoU, and do not carve the visual hull."""
+    import torch
+
+    from srfpipe.srf import losses
+    from srfpipe.srf.data import load_posed_images
+
+    images = write_images(tmp_path / "images.zarr", red_blue_images(n=4, width=40, height=30))
+    folder = tmp_path / "masks"
+    folder.mkdir()
+    for i in (0, 2):  # frames 1 and 3 were never labelled
+        cv2.imwrite(str(folder / f"frame_{i:05d}_apple.png"), np.full((30, 40), 255, np.uint8))
+    opts = options(backend="import", **{"import": {"path": str(folder)}})
+    mask = segment_images(images, "apple", prompt_options(opts, "apple"), tmp_path / "apple.zarr", progress=False)
+    info = meta(open_artifact(mask))
+    assert info["labelled"] == [True, False, True, False]
+    assert info["unlabelled_frames"] == ["frame_00001", "frame_00003"]
+    out = composite_masks(images, [mask], validate_scene({})["labels"], tmp_path / "labels.zarr", progress=False)
+    assert meta(open_artifact(out))["unlabelled_frames"] == ["frame_00001", "frame_00003"]
+    # the semantic loss of a batch counts the labelled frames' rays only
+    logits, labels = torch.full((4, 1), -8.0), torch.tensor([[1.0], [0.0], [1.0], [0.0]])
+    valid = torch.tensor([True, False, True, False])
+    assert float(losses.semantic_loss(logits, labels, valid)) > 7.9  # wrong on every labelled ray
+    assert float(losses.semantic_loss(logits[~valid], labels[~valid])) < 1e-3
+    group = zarr.open_group(str(images), mode="r+")  # a scene box, so that the loader reads the labels' frames
+    group.create_array("intrinsics", data=np.tile([40.0, 40.0, 20.0, 15.0], (4, 1)))
+    group.create_array("camera_to_world", data=np.tile(np.eye(4), (4, 1, 1)))
+    group.attrs["srfpipe"] = {**group.attrs["srfpipe"], "bounds_world": [[-1, -1, 1], [1, 1, 3]],
+                              "scene_from_world": np.eye(4).tolist()}
+    data = load_posed_images(images, out)
+    assert data.labelled.tolist() == [True, False, True, False]
 
 
 # ------------------------------------------------------------------------------ composite

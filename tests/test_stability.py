@@ -93,7 +93,7 @@ def scaled_images(images, scale: float, out):
 
 
 @pytest.fixture(scope="module")
-def fields_at_scales(synthetic, tmp_path_factory):
+def fields_at_scales(synthetic, tmp_path_factory, device):
     """The synthetic scene trained in world units 0.01x, 1x and 100x as large (same seed)."""
     from srfpipe.srf.query import SemanticRadianceField
 
@@ -107,7 +107,7 @@ def fields_at_scales(synthetic, tmp_path_factory):
             scaled = scaled_images(images, scale, folder / f"images_{scale}.zarr")  # 1x too: the same path
             out = folder / f"srf_{scale}.zarr"
             train(scaled, labels, out, tiny_options(), holdout_every=3)
-            fields[scale] = SemanticRadianceField.load(out, device="cpu")
+            fields[scale] = SemanticRadianceField.load(out, device=device)
     finally:
         torch.set_num_threads(threads)
     return fields
@@ -396,7 +396,7 @@ def test_rays_that_miss_the_box_see_the_background(contraction):
     assert torch.isfinite(out["depth"]).all() and assert_finite_gradients(model) > 0
 
 
-def test_class_present_in_one_frame_only_trains_and_evaluates(synthetic, tmp_path):
+def test_class_present_in_one_frame_only_trains_and_evaluates(synthetic, tmp_path, device):
     """apple only in frame 0 (held out: never seen in training), branch only in frame 1 (trained
     on): the heads train, the loss stays finite, metrics.json has no NaN (None where undefined)."""
     from srfpipe.evaluate import evaluate
@@ -414,7 +414,7 @@ def test_class_present_in_one_frame_only_trains_and_evaluates(synthetic, tmp_pat
     train(images, one_frame, out, tiny_options(), holdout_every=3)
     curve = read_curve(out)
     assert np.isfinite(curve["semantic"]).all() and np.isfinite(curve["loss"]).all()
-    evaluate(images, one_frame, out, tmp_path / "eval", {"holdout_every": 3}, device="cpu")
+    evaluate(images, one_frame, out, tmp_path / "eval", {"holdout_every": 3}, device=device)
 
     def no_nan(name):
         raise AssertionError(f"metrics.json holds {name}")

@@ -282,6 +282,20 @@ def test_appearance_is_on_by_default_for_real_captures_only():
     assert resolve_data_defaults({"initial_opacity": 0.05}, real)["initial_opacity"] == 0.05
 
 
+def test_background_penalty_only_where_the_capture_says_its_background_is_empty():
+    """Masks name only the prompted objects: unless the scene says its background is empty, the
+    opacity of unmasked rays is not penalised, whatever the box (a hull box included)."""
+    from srfpipe.srf.trainer import EMPTY_BACKGROUND_OPACITY, resolve_data_defaults
+
+    scene = camera_ring_data(100.0)
+    scene.classes, scene.bounds_source = ["apple"], "mask_hull"
+    assert resolve_data_defaults({"background_opacity": None}, scene)["background_opacity"] == 0.0
+    scene.background_empty = True
+    assert resolve_data_defaults({"background_opacity": None}, scene)["background_opacity"] == EMPTY_BACKGROUND_OPACITY
+    scene.classes = []  # nothing marks what is not background
+    assert resolve_data_defaults({"background_opacity": None}, scene)["background_opacity"] == 0.0
+
+
 def test_progress_bar_counts_seconds_of_a_time_budget():
     from srfpipe.srf.trainer import TrainingProgress
 
@@ -311,7 +325,7 @@ def camera_ring_data(focal: float, distance: float = 3.0, n: int = 8):
     return SimpleNamespace(bounds_world=bounds, scene_from_world=scene_from_world_transform(*bounds),
                            poses_scene=torch.as_tensor(poses, dtype=torch.float32),
                            intrinsics=torch.tensor([[focal, focal, 64.0, 64.0]] * n),
-                           bounds_source="config", gt_label=None)
+                           bounds_source="config", gt_label=None, background_empty=False, classes=[])
 
 
 @pytest.mark.parametrize("focal, cells, levels", [(100.0, 96, 1), (300.0, 192, 3), (3000.0, 192, 3)])

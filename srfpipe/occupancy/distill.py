@@ -362,6 +362,21 @@ def _create(group, name, shape, chunks, dtype, dims, fill_value):
                               fill_value=fill_value, config={"write_empty_chunks": False})
 
 
+def cache_region(field: SemanticField) -> np.ndarray:
+    """The box the cache covers: the field's semantic region (where its classes are) inside its bounds.
+
+    A field that models a whole room keeps the cache on the objects its classes name; a field
+    without a semantic region (an `AnalyticField`, an older srf.zarr) is cached over its bounds.
+    """
+    bounds = check_bounds(field.bounds_world)
+    region = getattr(field, "semantic_bounds_world", None)
+    if region is None:
+        return bounds
+    region = check_bounds(region)
+    low, high = np.maximum(region[0], bounds[0]), np.minimum(region[1], bounds[1])
+    return np.stack([low, high]) if np.all(high > low) else bounds
+
+
 def distill(field: SemanticField, out_path: str | Path, options: dict | None = None,
             inputs: list | None = None, progress: bool = True, **extra_attrs) -> Path:
     """Distill `field` into an occupancy cache at `out_path` (an atomic srfpipe artifact)."""
@@ -369,8 +384,9 @@ def distill(field: SemanticField, out_path: str | Path, options: dict | None = N
 
     options = resolve_options(options)
     classes = [str(c) for c in field.classes]
-    resolution = choose_voxel_size(field.bounds_world, options)
-    grid = VoxelGrid.from_bounds(field.bounds_world, resolution["voxel_size"])
+    region = cache_region(field)
+    resolution = choose_voxel_size(region, options)
+    grid = VoxelGrid.from_bounds(region, resolution["voxel_size"])
     truncation = choose_truncation(grid.voxel_size, options)
     unit, unit_source = world_unit(field, options)
     v, brick, trunc = grid.voxel_size, options["brick"], truncation["truncation"]
@@ -477,6 +493,7 @@ def distill(field: SemanticField, out_path: str | Path, options: dict | None = N
             octree_depth=depth,
             format_version=FORMAT_VERSION,
             field_bounds_world=np.asarray(field.bounds_world, dtype=np.float64).tolist(),
+            cache_region_world=region.tolist(),
             **extra_attrs,
         )
     log.info("occupied voxels %d (%s); %.3g MB on disk, %.3g MB as dense arrays (%.2g %%)", counts[0],

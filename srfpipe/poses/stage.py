@@ -1,4 +1,4 @@
-"""Import camera poses (nerfstudio | blender | colmap | orchard), optionally refine them with COLMAP.
+"""Import camera poses (nerfstudio | blender | colmap | llff | orchard), optionally refine them with COLMAP.
 
 Writes `poses.zarr` (see docs/artifacts.md): world-frame `camera_to_world` in the project's OpenCV
 camera convention (`srfpipe.cameras`), full-resolution intrinsics and OpenCV distortion, optional
@@ -24,11 +24,12 @@ from srfpipe.poses.capture import Capture, validate_capture
 from srfpipe.poses.colmap import read_colmap
 from srfpipe.poses.colmap_refine import refine_poses
 from srfpipe.poses.ground_truth import attach_ground_truth
+from srfpipe.poses.llff import read_llff
 from srfpipe.poses.nerfstudio import read_nerfstudio
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("orchard", "plant", "nerfstudio", "blender", "colmap")
+FORMATS = ("orchard", "plant", "nerfstudio", "blender", "colmap", "llff")
 
 
 def load_capture(source: dict, capture_dir: str | Path | None = None) -> Capture:
@@ -47,6 +48,8 @@ def load_capture(source: dict, capture_dir: str | Path | None = None) -> Capture
         capture = read_nerfstudio(path, source_format=fmt, allowed_roots=allowed)
     elif fmt == "blender":
         capture = read_blender(path, allowed_roots=allowed)
+    elif fmt == "llff":
+        capture = read_llff(path, source.get("images_dir"), allowed_roots=allowed)
     else:
         capture = read_colmap(path, source.get("images_dir"), source.get("model_dir"), allowed_roots=allowed)
     capture = attach_ground_truth(capture)
@@ -144,8 +147,8 @@ def add_arguments(parser) -> None:
     add_options_arguments(parser, "poses")
     parser.add_argument(
         "--source", metavar="JSON", default=None,
-        help="JSON object: the scene's 'source' section (format nerfstudio|blender|colmap|orchard, path, "
-        "images_dir, model_dir); overrides the --scene file's",
+        help="JSON object: the scene's 'source' section (format nerfstudio|blender|colmap|llff|orchard, "
+        "path, images_dir, model_dir); overrides the --scene file's",
     )
     parser.add_argument("--capture", metavar="DIR", default=None,
                         help="capture folder (overrides source.path; the orchard's generated capture)")

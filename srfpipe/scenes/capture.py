@@ -120,7 +120,8 @@ def write_mesh(path: Path, mesh) -> None:
         raise RuntimeError(f"{path}: open3d could not write the mesh")
 
 
-def transforms_json(poses_cv: np.ndarray, intrinsics: np.ndarray, width: int, height: int, names) -> dict:
+def transforms_json(poses_cv: np.ndarray, intrinsics: np.ndarray, width: int, height: int, names,
+                    distortion=None) -> dict:
     from srfpipe.cameras import opencv_to_opengl
 
     fx, fy, cx, cy = (float(v) for v in intrinsics)
@@ -131,7 +132,7 @@ def transforms_json(poses_cv: np.ndarray, intrinsics: np.ndarray, width: int, he
     return {
         "camera_model": "OPENCV",
         "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": int(width), "h": int(height),
-        "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
+        **dict(zip(("k1", "k2", "p1", "p2"), (float(c) for c in (distortion if distortion is not None else [0] * 4)))),
         "frames": frames,
     }
 
@@ -143,7 +144,7 @@ def add_sensor_noise(rgb: np.ndarray, sigma: float, rng: np.random.Generator) ->
 
 
 def _render_views(renderer, poses, intrinsics, width: int, height: int, names, folder: Path, n_classes: int,
-                  progress: bool, desc: str, sensor_noise: float, noise_seed: int) -> np.ndarray:
+                  progress: bool, desc: str, sensor_noise: float, noise_seed: int, distortion=None) -> np.ndarray:
     """Render and write every view's image, label and depth; returns the pixel count of each class."""
     import cv2
     from tqdm import tqdm
@@ -152,7 +153,7 @@ def _render_views(renderer, poses, intrinsics, width: int, height: int, names, f
     class_pixels = np.zeros(n_classes, np.int64)
     views = tqdm(list(enumerate(zip(names, poses))), desc=desc, unit="view", disable=not progress)
     for index, (name, pose) in views:
-        view = renderer.render(pose, intrinsics, width, height)
+        view = renderer.render(pose, intrinsics, width, height, distortion)
         rgb = view.rgb
         if sensor_noise > 0:
             rgb = add_sensor_noise(rgb, sensor_noise, np.random.default_rng([noise_seed, 2, index]))
@@ -167,14 +168,15 @@ def _render_views(renderer, poses, intrinsics, width: int, height: int, names, f
 def write_capture(
     out: str | Path, renderer, poses: np.ndarray, intrinsics: np.ndarray, width: int, height: int,
     classes: list[str], meshes: dict, scene: dict, files: dict | None = None, progress: bool = True,
-    desc: str = "views", sensor_noise: float = 0.0, noise_seed: int = 0,
+    desc: str = "views", sensor_noise: float = 0.0, noise_seed: int = 0, distortion=None,
 ) -> dict:
     """Render every pose and write the capture folder atomically; returns scene.json as written.
 
     `meshes` maps a file name (without .ply) to a `tree.Mesh`; `scene` holds the generator's own
     scene.json keys (world frame, bounds, parameters, ...); `files` maps further ground-truth file
     names to JSON-able values (e.g. apples.json). `sensor_noise` (8-bit levels, 0 = none) is drawn
-    per view from `noise_seed`.
+    per view from `noise_seed`. `distortion` (k1, k2, p1, p2) renders through an OpenCV lens, and
+    transforms.json records it.
     """
     out = Path(out)
     names = frame_names(len(poses))
@@ -183,13 +185,13 @@ def write_capture(
         for folder in (tmp / "images", gt / "labels", gt / "depth", gt / "meshes"):
             folder.mkdir(parents=True)
         class_pixels = _render_views(renderer, poses, intrinsics, width, height, names, tmp, len(classes),
-                                     progress, desc, sensor_noise, noise_seed)
+                                     progress, desc, sensor_noise, noise_seed, distortion)
         for mesh_name, mesh in meshes.items():
             write_mesh(gt / "meshes" / f"{mesh_name}.ply", mesh)
         for file_name, value in (files or {}).items():
             (gt / file_name).write_text(json.dumps(value, indent=1))
         (tmp / "transforms.json").write_text(
-            json.dumps(transforms_json(poses, intrinsics, width, height, names), indent=1)
+            json.dumps(transforms_json(poses, intrinsics, width, height, names, distortion), indent=1)
         )
         fx, fy, cx, cy = np.asarray(intrinsics, np.float64).tolist()
         full = {

@@ -96,7 +96,7 @@ def generate_orchard(out_dir: str | Path, progress: bool = True, **options) -> P
         width, height, CLASSES, {name: getattr(tree, name) for name in ("apple", "branch", "leaf", "ground")},
         scene, files={"apples.json": [{"centre": c.tolist(), "radius": tree.apple_radius}
                                       for c in tree.apple_centres]},
-        progress=progress, desc="orchard views",
+        progress=progress, desc="orchard views", distortion=params.get("distortion"),
     )
     log.info(
         "orchard seed %d: %d segments, %d leaves, %d apples; %d views of %dx%d in %.1f s -> %s",

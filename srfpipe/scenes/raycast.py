@@ -248,8 +248,9 @@ class Renderer:
         occluded = self.scene.test_occlusions(self._o3d.core.Tensor(rays)).numpy()
         return (~occluded).astype(np.float32)
 
-    def render(self, camera_to_world: np.ndarray, intrinsics: np.ndarray, width: int, height: int) -> Render:
-        origins, directions = pixel_rays(camera_to_world, intrinsics, width, height)
+    def render(self, camera_to_world: np.ndarray, intrinsics: np.ndarray, width: int, height: int,
+               distortion=None) -> Render:
+        origins, directions = pixel_rays(camera_to_world, intrinsics, width, height, distortion)
         origins = origins.reshape(-1, 3)
         directions = directions.reshape(-1, 3)
         forward = np.asarray(camera_to_world, np.float64)[:3, 2]

@@ -137,6 +137,7 @@ def _open_masks(paths: list[str | Path], frames: Frames):
     from srfpipe.artifacts import meta, open_artifact
 
     arrays, prompts, thresholds = [], [], []
+    labelled = np.ones(frames.count, dtype=bool)
     for path in paths:
         group = open_artifact(path, stage="segment")
         info = meta(group)
@@ -149,7 +150,9 @@ def _open_masks(paths: list[str | Path], frames: Frames):
         arrays.append(group["probability"])
         prompts.append(info["prompt"])
         thresholds.append(float(info["threshold"]))
-    return arrays, prompts, thresholds
+        if info.get("labelled") is not None:  # masks of some frames only (import)
+            labelled &= np.asarray(info["labelled"], dtype=bool)
+    return arrays, prompts, thresholds, labelled
 
 
 def _probabilities(arrays, index: int, channels) -> np.ndarray:
@@ -185,7 +188,7 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
     from srfpipe.artifacts import create_artifact, update_attrs
 
     frames = read_frames(images_path)
-    arrays, prompts, thresholds = _open_masks(list(mask_paths), frames)
+    arrays, prompts, thresholds, labelled = _open_masks(list(mask_paths), frames)
     n, height, width, names = frames.count, frames.height, frames.width, frames.names
     all_values = list(range(1, len(prompts) + 1))
     t = np.asarray(thresholds, dtype=np.float32)
@@ -223,22 +226,33 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
         label_pixel_counts = {n_: int(c) for n_, c in zip(["background", *classes], label_counts)}
         table = image_label_table(classes, values, label_pixel_counts, options.get("colors", {}))
         label.attrs["image-label"] = table
-        update_attrs(group, **scene_bounds(frames, label, options.get("bounds", "auto"), bool(classes)))
+        update_attrs(group, **scene_bounds(frames, label, options.get("bounds", "auto"), bool(classes),
+                                           options.get("background", "scene"), labelled))
         update_attrs(group, classes=classes, class_values=dict(zip(classes, values)), names=names,
                      pixel_counts=pixel_counts, label_pixel_counts=label_pixel_counts,
                      dropped_classes=[] if keep_empty else empty, empty_classes=empty,
                      thresholds=dict(zip(prompts, thresholds)), width=width, height=height,
+                     labelled=labelled.tolist(),
+                     unlabelled_frames=[name for name, known in zip(names, labelled) if not known],
                      **{"image-label": table})
     log.info("%s: classes %s, pixel counts %s, dropped %s", out, classes, pixel_counts,
              [] if keep_empty else empty)
     return Path(out)
 
 
-def scene_bounds(frames: Frames, label, policy: str, has_classes: bool) -> dict:
-    """The bounds every later stage uses: the visual hull of the labelled pixels, or the poses'.
+def scene_bounds(frames: Frames, label, policy: str, has_classes: bool, background: str = "scene",
+                 labelled: np.ndarray | None = None) -> dict:
+    """The model's bounds every later stage uses, and the semantic region inside them.
 
-    `auto` carves the hull when there are classes and the poses' bounds were only estimated
-    (points or frusta); bounds given in the config or by the capture's ground truth are kept.
+    The model's box is the poses' (config, ground truth, sparse points or frusta): what the
+    images show, whatever the masks cover. Only a capture whose background is empty (`background`
+    "empty": a pixel no mask marks looks through empty space) may shrink it to the masks' visual
+    hull, under `auto` when the poses' bounds were only estimated, or always under `masks`.
+
+    The semantic region (`semantic_bounds_world`) is where the classes are: the hull's box when
+    the masks carve one and the poses' bounds were estimated, else the model's box. It bounds the
+    occupancy cache and the simulator, so that modelling a whole room does not grow them. Only
+    the `labelled` frames (those with masks; default all) carve.
     """
     from srfpipe.artifacts import meta
     from srfpipe.segment.hull import bounds_from_masks
@@ -248,20 +262,28 @@ def scene_bounds(frames: Frames, label, policy: str, has_classes: bool) -> dict:
         return {}
     poses_bounds = np.asarray(info["bounds_world"], dtype=np.float64)
     poses_source = info.get("bounds_source") or "poses"
-    kept = {"bounds_world": poses_bounds, "bounds_source": poses_source, "bounds_poses": poses_bounds}
+    kept = {"bounds_world": poses_bounds, "bounds_source": poses_source, "bounds_poses": poses_bounds,
+            "semantic_bounds_world": poses_bounds, "background": background}
     trusted = poses_source in ("config", "ground_truth")
     if policy == "poses" or not has_classes or (policy == "auto" and trusted):
         return kept
+    # only frames with masks carve: an unlabelled frame's empty label would carve everything
+    known = np.flatnonzero(np.ones(frames.count, bool) if labelled is None else labelled)
     found = bounds_from_masks(
-        np.asarray(frames.group["camera_to_world"][...]), np.asarray(frames.group["intrinsics"][...]),
-        (np.asarray(label[i]) > 0 for i in range(frames.count)), poses_bounds)
+        np.asarray(frames.group["camera_to_world"][...])[known], np.asarray(frames.group["intrinsics"][...])[known],
+        lambda: (np.asarray(label[i]) > 0 for i in known), poses_bounds)
     if found is None:
         return {**kept, "bounds_hull": None}
     box, record = found
+    kept.update(semantic_bounds_world=box, bounds_hull=record)
+    if background != "empty" and policy == "auto":
+        log.info("semantic region from the masks' visual hull: %s (%.3g of the volume of the %s bounds, "
+                 "which the model keeps: the background is not empty)",
+                 np.round(box, 4).tolist(), record["volume_vs_poses_bounds"], poses_source)
+        return kept
     log.info("bounds from the masks' visual hull: %s (%.3g of the volume of the %s bounds)",
              np.round(box, 4).tolist(), record["volume_vs_poses_bounds"], poses_source)
-    return {"bounds_world": box, "bounds_source": "mask_hull", "bounds_poses": poses_bounds,
-            "bounds_hull": record}
+    return {**kept, "bounds_world": box, "bounds_source": "mask_hull"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -18,7 +18,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Iterator
 
+import logging
+
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 DEFAULT_PATTERNS = {"masks": "{stem}_{prompt}.png", "labels": "{stem}.png"}
 
@@ -75,7 +79,10 @@ def _soft(mask: np.ndarray) -> np.ndarray:
 def import_masks(
     names: list[str], size: tuple[int, int], prompt: str, options: dict, downscale: float = 1.0
 ) -> Iterator[np.ndarray]:
-    """Probability maps (H, W) float32 in [0, 1] for `prompt`, one per image name, in order."""
+    """Probability maps (H, W) float32 in [0, 1] for `prompt`, one per image name, in order.
+
+    A frame whose mask file is missing yields None (unlabelled); all of them missing is an error.
+    """
     spec = options.get("import") or {}
     if not spec.get("path"):
         raise ValueError("segmentation.backend is 'import' but segmentation.import.path is not set")
@@ -90,8 +97,19 @@ def import_masks(
             raise ValueError(f"unknown prompt {prompt!r}: segmentation.import.values has no label value for it "
                              f"(it maps {sorted((spec.get('values') or {}))})")
         values = np.asarray([values] if isinstance(values, int) else values)
-    for name in names:
-        path = folder / mask_filename(pattern, name, prompt)
+    paths = [folder / mask_filename(pattern, name, prompt) for name in names]
+    missing = [name for name, path in zip(names, paths) if not path.is_file()]
+    if len(missing) == len(names):
+        raise FileNotFoundError(f"{paths[0]}: mask file does not exist, nor does any other of the {len(names)} "
+                                f"frames' masks for prompt {prompt!r} (segmentation.import.pattern {pattern!r})")
+    if missing:
+        # a frame without a mask is unlabelled, not empty: it trains colour and geometry only
+        log.warning("prompt %r: %d of %d frames have no mask in %s (unlabelled: %s%s)", prompt, len(missing),
+                    len(names), folder, ", ".join(missing[:8]), " ..." if len(missing) > 8 else "")
+    for path in paths:
+        if not path.is_file():
+            yield None
+            continue
         raw = _read_single_channel(path)
         if layout == "labels":
             # select the class at full resolution, then area-average: soft edges like the image's

@@ -89,17 +89,23 @@ def segment_images(images_path: str | Path, prompt: str, options: dict, out: str
             "probability", shape=(n, height, width), chunks=(1, height, width), dtype="uint8",
             dimension_names=("image", "y", "x"), fill_value=0,
         )
-        coverage = []
+        coverage, labelled = [], []
         for i, prob in enumerate(maps):
+            labelled.append(prob is not None)
+            if prob is None:  # no mask for this frame (import): unlabelled, left at the fill value
+                coverage.append(None)
+                continue
             if prob.shape != (height, width):
                 raise ValueError(f"{backend} back end returned a {prob.shape} mask for image {names[i]}, "
                                  f"expected {(height, width)}")
             probability[i] = np.round(np.clip(prob, 0.0, 1.0) * 255.0).astype(np.uint8)
             coverage.append(float(np.mean(prob >= options["threshold"])))
         update_attrs(group, prompt=prompt, threshold=options["threshold"], backend=backend, names=names,
-                     width=width, height=height, coverage=coverage, **source)
-    log.info("%s: %d masks, mean coverage %.3f at threshold %.2f", out, n, float(np.mean(coverage)),
-             options["threshold"])
+                     width=width, height=height, coverage=coverage, labelled=labelled,
+                     unlabelled_frames=[name for name, known in zip(names, labelled) if not known], **source)
+    known = [c for c in coverage if c is not None]
+    log.info("%s: %d masks (%d frames unlabelled), mean coverage %.3f at threshold %.2f", out, len(known),
+             n - len(known), float(np.mean(known)), options["threshold"])
     return Path(out)
 
 

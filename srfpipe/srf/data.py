@@ -36,6 +36,11 @@ class PosedImages:
     bounds_world: np.ndarray
     provenance: dict
     bounds_source: str | None = None  # where bounds_world came from (config, ground_truth, mask_hull, ...)
+    # where the classes are (labels.zarr: the masks' visual hull, else bounds_world): bounds the
+    # occupancy cache and the simulator
+    semantic_bounds_world: np.ndarray | None = None
+    background_empty: bool = False  # labels.background: pixels no mask marks look through empty space
+    labelled: np.ndarray | None = None  # (N,) bool: frames with masks (None: every frame, or no labels)
 
     @property
     def count(self) -> int:
@@ -97,6 +102,9 @@ def load_posed_images(images_path, labels_path=None) -> PosedImages:
         gt_classes = [str(c) for c in attrs.get("ground_truth_classes") or ORCHARD_GT_CLASSES]
     multihot = label = None
     classes: list[str] = []
+    semantic_bounds = None
+    background_empty = False
+    labelled = None
     if labels_path is not None:
         labels_path = Path(labels_path)
         lgroup = open_artifact(labels_path, stage="composite")
@@ -119,6 +127,19 @@ def load_posed_images(images_path, labels_path=None) -> PosedImages:
             scene_from_world = scene_from_world_transform(bounds[0], bounds[1])
             bounds_source = lattrs.get("bounds_source", bounds_source)
             world_from_scene = np.linalg.inv(scene_from_world)
+        if lattrs.get("semantic_bounds_world") is not None:
+            semantic_bounds = np.asarray(lattrs["semantic_bounds_world"], dtype=np.float64)
+            if semantic_bounds.shape != (2, 3) or not np.all(semantic_bounds[1] > semantic_bounds[0]):
+                raise ValueError(f"{labels_path}: attribute semantic_bounds_world must be [[min xyz], [max xyz]] "
+                                 "with min < max")
+        if lattrs.get("labelled") is not None:
+            labelled = np.asarray(lattrs["labelled"], dtype=bool)
+            if labelled.shape != (n,):
+                raise ValueError(f"{labels_path}: attribute labelled has {labelled.size} entries for {n} images")
+            if labelled.all():
+                labelled = None
+        # labels.zarr written before labels.background existed: a hull box meant an empty background
+        background_empty = lattrs.get("background", "empty" if bounds_source == "mask_hull" else "scene") == "empty"
         if "label" in lgroup:
             label = np.asarray(lgroup["label"][...])
             # label values follow the config's prompt order (a dropped class leaves a gap):
@@ -138,6 +159,8 @@ def load_posed_images(images_path, labels_path=None) -> PosedImages:
         width=w, height=h, names=[str(x) for x in attrs.get("names", [str(i) for i in range(n)])],
         classes=classes, scene_from_world=scene_from_world, world_from_scene=world_from_scene,
         bounds_world=bounds, provenance=attrs, bounds_source=bounds_source,
+        semantic_bounds_world=bounds if semantic_bounds is None else semantic_bounds,
+        background_empty=background_empty, labelled=labelled,
     )
 
 

@@ -9,6 +9,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from srfpipe.device import randint
+
 
 def photometric_loss(rgb: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """L_photo = 1/|R| sum_r ||C(r) - C_hat(r)||^2 (Eq. 5), rgb and target (R, 3) in [0, 1]."""
@@ -49,15 +51,19 @@ def total_loss(
     return {"loss": photo + lambda_sem * sem, "photometric": photo, "semantic": sem}
 
 
-def background_opacity_loss(box_accumulation: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+def background_opacity_loss(box_accumulation: torch.Tensor, labels: torch.Tensor,
+                            valid: torch.Tensor | None = None) -> torch.Tensor:
     """Mean opacity inside the model box of the rays whose pixel shows none of the classes.
 
     When the box is the masks' visual hull, such a ray crosses the box through empty space: any
     opacity it gathers there is fog or a floater that the photometric loss cannot see against a
     plain background (dark density in front of a dark backdrop costs nothing in the training
-    views and hides the object in the others). box_accumulation (R,), labels (R, C) multi-hot.
+    views and hides the object in the others). box_accumulation (R,), labels (R, C) multi-hot;
+    `valid` (R,) excludes rays of frames without masks (their zero labels say nothing).
     """
     background = labels.sum(dim=-1) == 0
+    if valid is not None:
+        background = background & valid
     if not bool(background.any()):
         return box_accumulation.sum() * 0.0
     return box_accumulation.float()[background].mean()
@@ -84,7 +90,7 @@ def total_variation(table: torch.Tensor, resolution, samples: int | None = None,
         dz = (grid[:, :, 1:] - grid[:, :, :-1]).square().mean()
         return dx + dy + dz
     # a cell's corner (i, j, k) with i < rx - 1 etc., and its +x, +y, +z neighbours
-    cell = torch.randint(cells, (int(samples),), generator=generator).to(table.device)
+    cell = randint(0, cells, int(samples), generator, table.device)
     k = cell % (rz - 1)
     j = (cell // (rz - 1)) % (ry - 1)
     i = cell // ((rz - 1) * (ry - 1))

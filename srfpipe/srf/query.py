@@ -41,6 +41,9 @@ class SemanticRadianceField:
         self.scene_from_world = np.asarray(attrs["scene_from_world"], dtype=np.float64)
         self.world_from_scene = np.asarray(attrs["world_from_scene"], dtype=np.float64)
         self.bounds_world = np.asarray(attrs["bounds_world"], dtype=np.float64)
+        # where the classes are (older srf.zarr: the model's box); the occupancy cache covers it
+        self.semantic_bounds_world = np.asarray(attrs.get("semantic_bounds_world") or attrs["bounds_world"],
+                                                dtype=np.float64)
         self.scale = float(attrs["scene_scale"])  # scene units per world unit
         self.batch_size = 1 << 17
 

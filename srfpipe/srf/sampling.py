@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn as nn
 
+from srfpipe.device import rand, randint
 from srfpipe.srf.field import contract, uncontract
 
 
@@ -314,7 +315,7 @@ class OccupancyGrid(nn.Module):
         if generator is None:
             jitter = torch.full((cells.shape[0], 3), 0.5, device=cells.device)
         else:
-            jitter = torch.rand(cells.shape[0], 3, generator=generator, device=cells.device)
+            jitter = rand((cells.shape[0], 3), generator, cells.device)
         if level == 0:
             rx, ry, rz = self.resolution
             ijk = torch.stack([cells // (ry * rz), (cells // rz) % ry, cells % rz], dim=-1)
@@ -336,11 +337,10 @@ class OccupancyGrid(nn.Module):
             if all_cells:
                 cells = torch.arange(n, device=occ.device)
             else:
-                random_cells = torch.randint(0, n, (max(n // 4, 1),), generator=generator, device=occ.device)
+                random_cells = randint(0, n, max(n // 4, 1), generator, occ.device)
                 occupied_cells = binary.nonzero().squeeze(1)
                 if occupied_cells.numel() > n // 4:
-                    pick = torch.randint(0, occupied_cells.numel(), (n // 4,), generator=generator,
-                                         device=occ.device)
+                    pick = randint(0, occupied_cells.numel(), n // 4, generator, occ.device)
                     occupied_cells = occupied_cells[pick]
                 # unique: index_put_ with repeated indices would keep an arbitrary one of them
                 cells = torch.unique(torch.cat([random_cells, occupied_cells]))

@@ -187,12 +187,13 @@ def sample_batch(data, train_views, count: int, generator, device):
     """A random batch of pixels from the training views: rays, target rgb, multi-hot labels."""
     import torch
 
+    from srfpipe.device import randint
     from srfpipe.srf.data import rays_for_pixels
 
     views = torch.as_tensor(train_views)
-    image = views[torch.randint(0, len(views), (count,), generator=generator)]
-    u = torch.randint(0, data.width, (count,), generator=generator)
-    v = torch.randint(0, data.height, (count,), generator=generator)
+    image = views[randint(0, len(views), count, generator, views.device)]
+    u = randint(0, data.width, count, generator, data.images.device)
+    v = randint(0, data.height, count, generator, data.images.device)
     origins, directions = rays_for_pixels(data.poses_scene[image], data.intrinsics[image], u, v)
     rgb = data.images[image, v, u].float() / 255.0
     labels = (data.multihot[image, v, u].float() if data.multihot is not None
@@ -227,7 +228,7 @@ def quick_eval(model, data, views, device, max_views: int = 4) -> dict:
         target = data.images[index].numpy() / 255.0
         mses.append(float(((out["rgb"] - target) ** 2).mean()))
         pred = metrics.label_from_probabilities(out["probabilities"])
-        if data.label is not None:
+        if data.label is not None and (data.labelled is None or data.labelled[index]):
             m = metrics.confusion(pred, data.label[index], c + 1)
             conf = m if conf is None else conf + m
         if data.gt_label is not None:
@@ -258,8 +259,8 @@ REAL_CAPTURE_APPEARANCE_DIM = 8
 # fits the training views (built-in plant, 2 min: held-out 13.9 dB at opacity 0.01 per step,
 # 26.3 dB at 0.001; the fox 19.2 vs 19.0 dB with the grid 84 % vs 23 % occupied).
 TRUSTED_BOUNDS = ("config", "ground_truth")
-# weight of the background-opacity loss when the box is the masks' visual hull (set by the plant trials)
-HULL_BACKGROUND_OPACITY = 0.01
+# weight of the background-opacity loss when the capture's background is empty (set by the plant trials)
+EMPTY_BACKGROUND_OPACITY = 0.01
 
 
 # The grid's default cell count, and the cap of the finest level when the pixels ask for more.
@@ -311,9 +312,10 @@ def resolve_data_defaults(options: dict, data) -> dict:
 
     initial_opacity: 0.01 per step when the bounds are known (config, ground truth), 0.001 when
     they were estimated (see TRUSTED_BOUNDS).
-    background_opacity: when the box is the masks' visual hull, a pixel that shows none of the
-    classes sees empty space through the box, so opacity there is penalised; any other box
-    (the orchard's ground, a room) may hold things the classes do not name, so it is off.
+    background_opacity: when the capture says its background is empty (labels.background), a
+    pixel that shows none of the classes sees empty space through the box, so opacity there is
+    penalised; otherwise (the orchard's ground, a room) the box holds things the classes do not
+    name, so it is off.
     appearance_dim: a real capture's images differ in exposure and white balance, which a
     per-image embedding absorbs (Nerfacto, NeRF-W); a generated capture (it has ground truth)
     has none, and the embedding would only add parameters.
@@ -325,9 +327,10 @@ def resolve_data_defaults(options: dict, data) -> dict:
         options["initial_opacity"] = 0.01 if trusted else 0.001
         log.info("initial_opacity %g (bounds from %s)", options["initial_opacity"], data.bounds_source)
     if options.get("background_opacity") is None:
-        hull = data.bounds_source == "mask_hull" and len(data.classes) > 0
-        options["background_opacity"] = HULL_BACKGROUND_OPACITY if hull else 0.0
-        log.info("background_opacity %g (bounds from %s)", options["background_opacity"], data.bounds_source)
+        empty = data.background_empty and len(data.classes) > 0
+        options["background_opacity"] = EMPTY_BACKGROUND_OPACITY if empty else 0.0
+        log.info("background_opacity %g (background %s)", options["background_opacity"],
+                 "empty" if data.background_empty else "a scene")
     if options.get("appearance_dim") is None:
         options["appearance_dim"] = 0 if data.gt_label is not None else REAL_CAPTURE_APPEARANCE_DIM
         log.info("appearance_dim %d (%s capture)", options["appearance_dim"],
@@ -379,7 +382,7 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
     from tqdm import tqdm
 
     from srfpipe.artifacts import read_provenance
-    from srfpipe.device import choose_device, keep_freed_memory
+    from srfpipe.device import choose_device, keep_freed_memory, rand
     from srfpipe.srf import io, losses
     from srfpipe.srf.data import load_posed_images, split_views
     from srfpipe.srf.model import SRFModel, build_model_config, scene_scale
@@ -404,6 +407,11 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
     tv_features = float(options.get("tv_features", 0.0))
     tv_samples = options.get("tv_samples")
     tv_samples = None if tv_samples is None else int(tv_samples)
+
+    # frames without masks (labels.zarr `labelled`) train colour and geometry, not the heads
+    labelled_frames = None if data.labelled is None else torch.from_numpy(data.labelled).to(device)
+    if labelled_frames is not None:
+        log.info("semantic loss on the %d labelled of %d frames", int(data.labelled.sum()), data.count)
 
     torch.manual_seed(seed)
     config = build_model_config(options, data.bounds_world, data.scene_from_world, data.classes,
@@ -481,16 +489,17 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
                 progress = training_progress(step, iterations, train_seconds, time_budget)
                 group["lr"] = learning_rate(progress, lr, lr_final, lr_hold) * group["lr_scale"]
             origins, directions, image, rgb, labels_batch = sample_batch(data, train_views, batch, generator, device)
-            jitter = torch.rand(batch, generator=generator).to(device)
+            jitter = rand(batch, generator, device)
             with autocast:
                 outputs = model(origins, directions, image, jitter,
                                 box_accumulation=bool(background_opacity and labels_batch is not None))
-            parts = losses.total_loss(outputs["rgb"], rgb, outputs["logits"], labels_batch, lambda_sem)
+            valid = None if labelled_frames is None else labelled_frames[image]
+            parts = losses.total_loss(outputs["rgb"], rgb, outputs["logits"], labels_batch, lambda_sem, valid)
             if distortion_weight:
                 parts["loss"] = parts["loss"] + distortion_weight * outputs["distortion"]
             if background_opacity and labels_batch is not None:
                 parts["loss"] = parts["loss"] + background_opacity * losses.background_opacity_loss(
-                    outputs["box_accumulation"], labels_batch)
+                    outputs["box_accumulation"], labels_batch, valid)
             if tv_density and model.field.density_grid:
                 parts["loss"] = parts["loss"] + tv_density * losses.grid_total_variation(
                     model.field.inner_sigma, tv_samples, generator)
@@ -559,7 +568,7 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
         out, model, config=options, inputs=[p for p in (images, labels) if p is not None], curve=curve,
         eval_curve={k: v for k, v in eval_curve.items() if v} if eval_curve["step"] else None,
         classes=data.classes, scene_from_world=data.scene_from_world, world_from_scene=data.world_from_scene,
-        bounds_world=data.bounds_world, scene_scale=scale, holdout_every=holdout_every,
+        bounds_world=data.bounds_world, semantic_bounds_world=data.semantic_bounds_world, scene_scale=scale, holdout_every=holdout_every,
         train_views=train_views, heldout_views=heldout_views, train_seconds=train_seconds,
         precision=precision, device=str(device), fingerprint=fp, iterations_done=iterations_done, resumed_from_step=resumed_from,
         final=({k: curve[k][-1] for k in curve} if curve["step"] else {}), seen_fraction=seen_fraction,
