@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import logging
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -226,8 +227,8 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
         label_pixel_counts = {n_: int(c) for n_, c in zip(["background", *classes], label_counts)}
         table = image_label_table(classes, values, label_pixel_counts, options.get("colors", {}))
         label.attrs["image-label"] = table
-        update_attrs(group, **scene_bounds(frames, label, options.get("bounds", "auto"), bool(classes),
-                                           options.get("background", "scene"), labelled))
+        update_attrs(group, **scene_bounds(frames, partial(_hull_mask, arrays, kept), options.get("bounds", "auto"),
+                                           bool(classes), options.get("background", "scene"), labelled))
         update_attrs(group, classes=classes, class_values=dict(zip(classes, values)), names=names,
                      pixel_counts=pixel_counts, label_pixel_counts=label_pixel_counts,
                      dropped_classes=[] if keep_empty else empty, empty_classes=empty,
@@ -240,7 +241,16 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
     return Path(out)
 
 
-def scene_bounds(frames: Frames, label, policy: str, has_classes: bool, background: str = "scene",
+def _hull_mask(arrays, channels, index: int) -> np.ndarray:
+    """(H, W) bool: the pixels of frame `index` where any of the classes reaches HULL_MIN_PROBABILITY."""
+    from srfpipe.segment.hull import HULL_MIN_PROBABILITY
+
+    if not channels:
+        return np.zeros(arrays[0].shape[1:], bool) if arrays else np.zeros((0, 0), bool)
+    return _probabilities(arrays, index, channels).max(axis=0) >= HULL_MIN_PROBABILITY
+
+
+def scene_bounds(frames: Frames, hull_mask, policy: str, has_classes: bool, background: str = "scene",
                  labelled: np.ndarray | None = None) -> dict:
     """The model's bounds every later stage uses, and the semantic region inside them.
 
@@ -252,7 +262,8 @@ def scene_bounds(frames: Frames, label, policy: str, has_classes: bool, backgrou
     The semantic region (`semantic_bounds_world`) is where the classes are: the hull's box when
     the masks carve one and the poses' bounds were estimated, else the model's box. It bounds the
     occupancy cache and the simulator, so that modelling a whole room does not grow them. Only
-    the `labelled` frames (those with masks; default all) carve.
+    the `labelled` frames (those with masks; default all) carve; `hull_mask(i)` gives frame i's
+    pixels that mark the hull.
     """
     from srfpipe.artifacts import meta
     from srfpipe.segment.hull import bounds_from_masks
@@ -271,7 +282,7 @@ def scene_bounds(frames: Frames, label, policy: str, has_classes: bool, backgrou
     known = np.flatnonzero(np.ones(frames.count, bool) if labelled is None else labelled)
     found = bounds_from_masks(
         np.asarray(frames.group["camera_to_world"][...])[known], np.asarray(frames.group["intrinsics"][...])[known],
-        lambda: (np.asarray(label[i]) > 0 for i in known), poses_bounds)
+        lambda: (hull_mask(i) for i in known), poses_bounds)
     if found is None:
         return {**kept, "bounds_hull": None}
     box, record = found

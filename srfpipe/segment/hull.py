@@ -22,7 +22,10 @@ HULL_RESOLUTION = 96  # grid points along the longest axis of the searched box
 # A point stays when this fraction of the views framing it see a label there: a thin part (a
 # stalk, a twig) drops out of some views' masks (a soft mask thresholded, a segmenter's miss), and
 # a box that cuts it off cuts off what it carries.
-HULL_AGREEMENT = 0.75
+HULL_AGREEMENT = 0.65  # tolerates a part missing from a third of the views framing it
+# A pixel marks the hull where any class's probability reaches this, not the label threshold: a stalk
+# under a pixel wide keeps only part of a pixel's probability once the masks are area-downscaled.
+HULL_MIN_PROBABILITY = 0.1
 HULL_MARGIN = 0.05  # fraction of the hull's extent added on every side of its box
 SEARCH_GROWTH = 0.25  # the searched box: the poses' bounds grown by this fraction per side
 CARVES = 2  # the poses' box, then the first hull's box: each at HULL_RESOLUTION
