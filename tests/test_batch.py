@@ -154,3 +154,24 @@ def test_config_changes_rerun_their_stage_and_what_follows(workflow):
 
     # forcing one stage: it and what follows
     assert workflow.dry_run_jobs(*targets, "--forcerun", "train") == {"train": 1, "evaluate": 1, "distill": 1}
+
+
+def test_slurm_profile_gpu_example_sends_only_train_and_evaluate_to_the_gpu():
+    """The profile's commented GPU block, uncommented as its text says, is valid YAML for Snakemake's
+    profile keys, names rules that exist, and gives a GPU to train and evaluate only."""
+    import re
+
+    import yaml
+
+    profile = REPO / "workflow" / "profiles" / "slurm" / "config.yaml"
+    text = profile.read_text()
+    block = text[text.index("# set-resources:"):]
+    uncommented = "\n".join(line[2:] if line.startswith("# ") else line.lstrip("#") for line in block.splitlines())
+    example = yaml.safe_load(uncommented)
+    rules = set(re.findall(r"^rule (\w+):", "\n".join(p.read_text() for p in (REPO / "workflow" / "rules").glob("*.smk")),
+                           flags=re.M))
+    assert set(example["set-resources"]) <= rules and set(example["set-threads"]) <= rules
+    gpu = {rule for rule, resources in example["set-resources"].items() if resources.get("gpu")}
+    assert gpu == {"train", "evaluate"}
+    assert all(resources["slurm_partition"] == "gpu" for resources in example["set-resources"].values())
+    assert {**yaml.safe_load(text), **example}["executor"] == "slurm"

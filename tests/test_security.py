@@ -153,3 +153,32 @@ def test_training_and_segmentation_open_no_listening_socket(tmp_path):
             time.sleep(0.05)
         assert process.returncode == 0, process.stderr.read()
         assert not seen, f"srfpipe {args[0]} listened on a socket"
+
+
+@pytest.mark.workflow
+@pytest.mark.bad_input
+def test_capture_path_with_spaces_quotes_and_substitution_runs_no_shell(workflow):
+    """A capture folder named `cap $(touch PWNED) 'q"` builds its poses: every path in every rule is
+    quoted, so the shell runs no substitution and splits no argument."""
+    from tests.test_poses import ring, write_nerfstudio
+
+    capture = workflow.root / "data" / "cap $(touch PWNED) 'q\""
+    write_nerfstudio(capture, ring(4))
+    workflow.write_scene("odd", {"source": {"format": "nerfstudio", "path": str(capture)},
+                                 "segmentation": {"prompts": []}})
+    workflow.run("results/odd/poses.zarr")
+    assert (workflow.root / "results" / "odd" / "poses.zarr").is_dir()
+    assert not list(workflow.root.rglob("PWNED")) and not (REPO / "PWNED").exists()
+
+
+@pytest.mark.workflow
+@pytest.mark.bad_input
+@pytest.mark.parametrize("name", ["..", "x;touch PWNED;y", "a.b", "c++"])
+def test_scene_names_that_could_escape_results_are_refused(workflow, name):
+    from tests.conftest import TINY_ORCHARD
+
+    workflow.write_scene(name, TINY_ORCHARD)
+    result = workflow.run("-n", check=False)
+    assert result.returncode != 0
+    assert f"scene name {name!r} may hold only letters, digits, '-' and '_'" in result.stdout + result.stderr
+    assert not list(workflow.root.rglob("PWNED"))

@@ -36,8 +36,14 @@ def scene_scale(scene_from_world) -> float:
 
 
 def default_encoding(device) -> str:
-    """Dense grid on the CPU, hash grid on CUDA (see encodings.py for the measurements)."""
-    return "hash" if torch.device(device).type == "cuda" else "dense"
+    """The dense grid on every device.
+
+    It measures best on both: on the CPU (see encodings.py), and on an H100 too, where the orchard
+    reached 28.50 dB, object pixels 25.46, mIoU 0.80 in 90 s with the dense grid against 26.63 /
+    22.36 / 0.70 with the hash grid at the same step rate (issue "srfpipe on a GPU"). The hash grid
+    stays available (`train.encoding: hash`), as the paper's preset uses it.
+    """
+    return "dense"
 
 
 def build_model_config(options: dict, bounds_world, scene_from_world, classes: list[str],
@@ -67,7 +73,10 @@ def build_model_config(options: dict, bounds_world, scene_from_world, classes: l
                     detail_scene / scale, cap, finest / scale)
         detail_scene = finest
     encoding = options.get("encoding", "auto")
-    encoding = default_encoding(device) if encoding == "auto" else encoding
+    if encoding == "auto":
+        encoding = default_encoding(device)
+        log.info("encoding %s (auto on %s: the dense grid measured best on the CPU and on CUDA)",
+                 encoding, torch.device(device).type)
     contraction = bool(options.get("contraction", True))
     features = int(options.get("features") or (8 if int(options.get("grid_levels") or 1) > 1 else 16))
     if encoding == "dense":

@@ -18,7 +18,7 @@ rule orchard_capture:
         mem_mb=4000,
         runtime=30,
     shell:
-        "srfpipe orchard --options {params.options:q} --out {output} > {log} 2>&1"
+        "srfpipe orchard --options {params.options:q} --out {output:q} > {log:q} 2>&1"
 
 
 # A thin sapling in millimetres, few far views, dark backdrop (srfpipe/scenes/plant.py).
@@ -38,7 +38,7 @@ rule plant_capture:
         mem_mb=2000,
         runtime=10,
     shell:
-        "srfpipe plant --options {params.options:q} --out {output} > {log} 2>&1"
+        "srfpipe plant --options {params.options:q} --out {output:q} > {log:q} 2>&1"
 
 
 rule poses:
@@ -58,5 +58,5 @@ rule poses:
         mem_mb=8000,
         runtime=120,
     shell:
-        "srfpipe poses --source {params.source:q} --capture {input.capture} "
-        "--options {params.options:q} --threads {threads} --out {output} > {log} 2>&1"
+        "srfpipe poses --source {params.source:q} --capture {input.capture:q} "
+        "--options {params.options:q} --threads {threads} --out {output:q} > {log:q} 2>&1"

@@ -1,5 +1,6 @@
 # Config loading and validation, scene table, and the small helpers the rules share.
 import json
+import re
 from pathlib import Path
 
 from snakemake.utils import validate
@@ -13,11 +14,19 @@ RESULTS = config["results_dir"]
 SCENES_DIR = Path(config["scenes_dir"])
 
 
+# A scene's name becomes a folder under results/, part of every job's paths and of a wildcard's
+# regular expression: letters, digits, '-' and '_' only ('..' or 'a.b' or a ';' would escape them).
+SCENE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")
+
+
 def _load_scenes():
     if not SCENES_DIR.is_dir():
         raise WorkflowError(f"scenes_dir {SCENES_DIR}: folder does not exist")
     scenes = {}
     for path in sorted(SCENES_DIR.glob("*.yaml")):
+        if not SCENE_NAME.fullmatch(path.stem):
+            raise WorkflowError(f"{path}: scene name {path.stem!r} may hold only letters, digits, '-' and '_' "
+                                "(it names the scene's folder under results/); rename the file")
         try:
             scenes[path.stem] = load_scene(path)
         except ConfigError as exc:
@@ -33,7 +42,7 @@ for _name in SCENE_NAMES:
 
 
 wildcard_constraints:
-    scene="|".join(sorted(SCENES)) or "NO_SCENES",
+    scene="|".join(re.escape(name) for name in sorted(SCENES)) or "NO_SCENES",
 
 
 ARTIFACTS = {
@@ -70,7 +79,7 @@ GENERATED_FORMATS = ("orchard", "plant")
 def scenes_of_format(fmt):
     """A wildcard constraint matching exactly the scenes of one source format (never empty)."""
     names = [name for name, scene in SCENES.items() if scene["source"]["format"] == fmt]
-    return "|".join(sorted(names)) or f"NO_{fmt.upper()}_SCENES"
+    return "|".join(re.escape(name) for name in sorted(names)) or f"NO_{fmt.upper()}_SCENES"
 
 
 def capture_dir(wildcards):

@@ -17,4 +17,4 @@ rule downscale:
         mem_mb=4000,
         runtime=60,
     shell:
-        "srfpipe downscale --poses {input.poses} --options {params.options:q} --out {output} > {log} 2>&1"
+        "srfpipe downscale --poses {input.poses:q} --options {params.options:q} --out {output:q} > {log:q} 2>&1"

@@ -17,5 +17,5 @@ rule distill:
         mem_mb=8000,
         runtime=60,
     shell:
-        "srfpipe distill --srf {input.srf} --options {params.options:q} "
-        "--out {output} > {log} 2>&1"
+        "srfpipe distill --srf {input.srf:q} --options {params.options:q} "
+        "--out {output:q} > {log:q} 2>&1"

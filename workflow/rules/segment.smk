@@ -25,8 +25,8 @@ rule segment:
         mem_mb=4000,
         runtime=60,
     shell:
-        "srfpipe segment --images {input.images} --prompt {wildcards.prompt} --threads {threads} "
-        "--options {params.options:q} --out {output} > {log} 2>&1"
+        "srfpipe segment --images {input.images:q} --prompt {wildcards.prompt:q} --threads {threads} "
+        "--options {params.options:q} --out {output:q} > {log:q} 2>&1"
 
 
 # images.zarr gives the frames the labels describe (and their size when there are no prompts:
@@ -48,5 +48,5 @@ rule composite:
         mem_mb=2000,
         runtime=30,
     shell:
-        "srfpipe composite --images {input.images} --masks {input.masks} --options {params.options:q} "
-        "--out {output} > {log} 2>&1"
+        "srfpipe composite --images {input.images:q} --masks {input.masks:q} --options {params.options:q} "
+        "--out {output:q} > {log:q} 2>&1"

@@ -20,5 +20,5 @@ rule package:
         mem_mb=4000,
         runtime=30,
     shell:
-        "srfpipe package --occupancy {input.occupancy} --srf {input.srf} --images {input.images} "
-        "--threads {threads} --options {params.options:q} --out {output} > {log} 2>&1"
+        "srfpipe package --occupancy {input.occupancy:q} --srf {input.srf:q} --images {input.images:q} "
+        "--threads {threads} --options {params.options:q} --out {output:q} > {log:q} 2>&1"

@@ -33,9 +33,9 @@ rule train:
         runtime=120,
         gpu=0,
     shell:
-        "srfpipe train --images {input.images} --labels {input.labels} --out {output} "
-        "--checkpoints {params.checkpoints} --holdout-every {params.holdout} --threads {threads} "
-        "--metrics-log {log.metrics} --options {params.options:q} > {log.stdout} 2>&1"
+        "srfpipe train --images {input.images:q} --labels {input.labels:q} --out {output:q} "
+        "--checkpoints {params.checkpoints:q} --holdout-every {params.holdout} --threads {threads} "
+        "--metrics-log {log.metrics:q} --options {params.options:q} > {log.stdout:q} 2>&1"
 
 
 rule evaluate:
@@ -62,5 +62,5 @@ rule evaluate:
         mem_mb=4000,
         runtime=30,
     shell:
-        "srfpipe evaluate --images {input.images} --labels {input.labels} --srf {input.srf} "
-        "--threads {threads} --options {params.options:q} --out {output} > {log} 2>&1"
+        "srfpipe evaluate --images {input.images:q} --labels {input.labels:q} --srf {input.srf:q} "
+        "--threads {threads} --options {params.options:q} --out {output:q} > {log:q} 2>&1"
