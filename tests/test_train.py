@@ -341,3 +341,32 @@ def test_grid_follows_the_pixels_a_cell_covers(focal, cells, levels):
     assert options["features"] == (16 if levels == 1 else 8)
     chosen = resolve_data_defaults(dict(section_defaults("train"), default_cells=64), data)
     assert (chosen["default_cells"], chosen["grid_levels"]) == (64, 1)  # the scene's own grid stays
+
+
+def test_a_small_object_gets_its_share_of_every_batch_and_a_large_one_changes_nothing():
+    """object_rays: when the classes' pixels are rare (a plant under 1 % of the frame), that share of
+    each batch is drawn from them; when they are common, the batch is exactly the uniform one."""
+    from types import SimpleNamespace
+
+    from srfpipe.srf.trainer import object_pixels, sample_batch, step_generator
+
+    n, h, w = 4, 40, 50
+    multihot = torch.zeros(n, h, w, 1, dtype=torch.uint8)
+    multihot[:, 20, 25] = 1  # one pixel a frame: 25 with the 2-pixel dilation, 1.25 % of the pixels
+    data = SimpleNamespace(multihot=multihot, height=h, width=w, labelled=None,
+                           images=torch.zeros(n, h, w, 3, dtype=torch.uint8),
+                           poses_scene=torch.eye(4).repeat(n, 1, 1), intrinsics=torch.tensor([[40.0, 40.0, 25.0, 20.0]] * n))
+    views = np.arange(n)
+    focus = object_pixels(data, views, 0.1)
+    assert focus is not None and focus.numel() == n * 25
+    data.images[:, 18:23, 23:28] = 255  # the object and its 2-pixel margin are white
+    rgb = sample_batch(data, views, 1000, step_generator(0, 5), torch.device("cpu"), focus, 0.1)[3]
+    assert 0.1 <= float((rgb[:, 0] == 1).float().mean()) <= 0.13  # 100 drawn from it, a few more by chance
+    uniform = sample_batch(data, views, 1000, step_generator(0, 5), torch.device("cpu"))[3]
+    assert float((uniform[:, 0] == 1).float().mean()) < 0.03
+    data.multihot[:, 10:30, 10:40] = 1  # the object fills 30 % of the frame: nothing to do
+    assert object_pixels(data, views, 0.1) is None
+    data.labelled = np.array([False] * n)  # no frame has masks: nothing to focus on
+    data.multihot[:] = 0
+    data.multihot[:, 20, 25] = 1
+    assert object_pixels(data, views, 0.1) is None

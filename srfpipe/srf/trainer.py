@@ -183,17 +183,58 @@ def autocast_context(device, precision: str):
     return torch.autocast(device.type, dtype=dtype), precision
 
 
-def sample_batch(data, train_views, count: int, generator, device):
-    """A random batch of pixels from the training views: rays, target rgb, multi-hot labels."""
+def object_pixels(data, train_views, share: float, dilation_px: int = 2):
+    """Flat (image, y, x) indices of the training pixels that show a class (dilated by `dilation_px`),
+    or None when they already make up at least `share` of the training pixels (or there are none).
+
+    A small object (a plant under 1 % of the frame) would get a few rays of each batch, and its
+    colour, its geometry and its semantic heads almost no signal; drawing `share` of every batch
+    from its pixels fixes that without touching scenes whose classes fill more of the frame.
+    Frames without masks contribute none.
+    """
+    import cv2
+    import torch
+
+    if data.multihot is None or data.multihot.shape[-1] == 0 or share <= 0:
+        return None
+    kernel = np.ones((2 * dilation_px + 1,) * 2, np.uint8)
+    pixels = data.height * data.width
+    found = []
+    for view in train_views:
+        if data.labelled is not None and not data.labelled[view]:
+            continue
+        marked = data.multihot[int(view)].numpy().any(axis=-1).astype(np.uint8)
+        flat = np.flatnonzero(cv2.dilate(marked, kernel).ravel())
+        found.append(torch.from_numpy(flat + int(view) * pixels))
+    indices = torch.cat(found) if found else torch.zeros(0, dtype=torch.int64)
+    total = len(train_views) * pixels
+    if indices.numel() == 0 or indices.numel() >= share * total:
+        return None
+    log.info("the classes' pixels are %.2f %% of the training pixels: %.0f %% of each batch is drawn from them",
+             100.0 * indices.numel() / total, 100.0 * share)
+    return indices
+
+
+def sample_batch(data, train_views, count: int, generator, device, focus=None, focus_share: float = 0.0):
+    """A random batch of pixels from the training views: rays, target rgb, multi-hot labels.
+
+    With `focus` (object_pixels), round(focus_share * count) of the pixels are drawn from it.
+    """
     import torch
 
     from srfpipe.device import randint
     from srfpipe.srf.data import rays_for_pixels
 
     views = torch.as_tensor(train_views)
-    image = views[randint(0, len(views), count, generator, views.device)]
-    u = randint(0, data.width, count, generator, data.images.device)
-    v = randint(0, data.height, count, generator, data.images.device)
+    focused = 0 if focus is None else int(round(focus_share * count))
+    image = views[randint(0, len(views), count - focused, generator, views.device)]
+    u = randint(0, data.width, count - focused, generator, data.images.device)
+    v = randint(0, data.height, count - focused, generator, data.images.device)
+    if focused:
+        pick = focus[randint(0, focus.numel(), focused, generator, focus.device)]
+        pixel = pick % (data.height * data.width)
+        image = torch.cat([image, pick // (data.height * data.width)])
+        v, u = torch.cat([v, pixel // data.width]), torch.cat([u, pixel % data.width])
     origins, directions = rays_for_pixels(data.poses_scene[image], data.intrinsics[image], u, v)
     rgb = data.images[image, v, u].float() / 255.0
     labels = (data.multihot[image, v, u].float() if data.multihot is not None
@@ -407,6 +448,8 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
     tv_features = float(options.get("tv_features", 0.0))
     tv_samples = options.get("tv_samples")
     tv_samples = None if tv_samples is None else int(tv_samples)
+    object_share = float(options.get("object_rays", 0.0))
+    focus = object_pixels(data, train_views, object_share)
 
     # frames without masks (labels.zarr `labelled`) train colour and geometry, not the heads
     labelled_frames = None if data.labelled is None else torch.from_numpy(data.labelled).to(device)
@@ -488,7 +531,8 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
             for group in optimizer.param_groups:
                 progress = training_progress(step, iterations, train_seconds, time_budget)
                 group["lr"] = learning_rate(progress, lr, lr_final, lr_hold) * group["lr_scale"]
-            origins, directions, image, rgb, labels_batch = sample_batch(data, train_views, batch, generator, device)
+            origins, directions, image, rgb, labels_batch = sample_batch(data, train_views, batch, generator, device,
+                                                                         focus, object_share)
             jitter = rand(batch, generator, device)
             with autocast:
                 outputs = model(origins, directions, image, jitter,
