@@ -193,3 +193,17 @@ def test_novel_view_borrows_the_appearance_of_the_nearest_training_image():
     rendered = model.eval().render_rays_chunked(origins, directions)["rgb"]
     expected = model(origins, directions, torch.ones(4, dtype=torch.long))["rgb"]
     np.testing.assert_allclose(rendered.numpy(), expected.detach().numpy(), rtol=1e-6)
+
+
+def test_a_model_built_without_validation_is_the_workflows_model():
+    """build_model_config fills missing train keys from the schema: the same config as from the
+    validated defaults (the code's old literal fallbacks said 48 / 16 / 2 where the schema says
+    32 / 8 / 1 for outer_samples, before_samples, color_layers)."""
+    from srfpipe.config import section_defaults
+    from srfpipe.srf.model import build_model_config
+
+    bounds = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    bare = build_model_config({}, bounds, np.eye(4), ["apple"], 4)
+    validated = build_model_config(section_defaults("train"), bounds, np.eye(4), ["apple"], 4)
+    assert bare == validated
+    assert bare["color_layers"] == section_defaults("train")["color_layers"]

@@ -48,7 +48,14 @@ def default_encoding(device) -> str:
 
 def build_model_config(options: dict, bounds_world, scene_from_world, classes: list[str],
                        num_images: int, device="cpu") -> dict:
-    """Model config from the `train` options and the scene geometry (bounds, normalization)."""
+    """Model config from the `train` options and the scene geometry (bounds, normalization).
+
+    Keys missing from `options` take the scene schema's `train` defaults, so a caller that skips
+    validation (a notebook, a benchmark) builds the workflow's model, not one of literal fallbacks.
+    """
+    from srfpipe.config import section_defaults
+
+    options = {**section_defaults("train"), **options}
     bounds_world = np.asarray(bounds_world, dtype=np.float64)
     if bounds_world.shape != (2, 3) or not np.all(bounds_world[1] > bounds_world[0]):
         raise ValueError(f"scene bounds must be [[min xyz], [max xyz]] with min < max, got {bounds_world.tolist()}")
