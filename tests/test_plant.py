@@ -201,22 +201,25 @@ def test_shipped_plant_scene_to_labels(workflow):
     np.testing.assert_array_equal(data.label, lookup[truth])
     assert set(data.classes) >= {"leaf", "berry"}
     assert (workflow.root / "logs" / "plant" / "plant_capture.log").exists()
-    # geometry from the cameras, not the masks: the model keeps the frusta's box; the masks' hull
-    # is the semantic region, around the plant and inside the box
+    # its near-black backdrop is seen to be empty (labels.background auto): the model's box is the
+    # masks' hull, around the plant (the frusta's box is many times larger)
     truth_scene = json.loads((results / "capture" / "ground_truth" / "scene.json").read_text())
     obj_lo, obj_hi = (np.array(b) for b in truth_scene["object_bounds_world"])
-    assert data.bounds_source == "frusta" and not data.background_empty
+    info = read_provenance(results / "labels.zarr")
+    assert info["background"] == "empty" and info["background_from"] == "images" and info["background_spread"] < 12
+    assert data.bounds_source == "mask_hull" and data.background_empty
     region = data.semantic_bounds_world
+    np.testing.assert_allclose(data.bounds_world, region)
     assert np.all(region[0] <= obj_lo + 1.0) and np.all(region[1] >= obj_hi - 1.0), (region, obj_lo, obj_hi)
-    assert np.prod(region[1] - region[0]) < 0.5 * np.prod(data.bounds_world[1] - data.bounds_world[0])
-    # a capture that says its background is empty gets the hull as its box (and the penalty)
+    # a scene whose background is not empty keeps the cameras' box; the hull stays its semantic region
     masks = sorted(str(m) for m in (results / "masks").glob("*.zarr"))
     order = [str(results / "masks" / f"{name}.zarr") for name in _plant_scene()["segmentation"]["prompts"]]
-    composite_masks(results / "images.zarr", [m for m in order if m in masks], {"background": "empty"},
-                    workflow.root / "empty.zarr", progress=False)
-    empty = load_posed_images(results / "images.zarr", workflow.root / "empty.zarr")
-    assert empty.bounds_source == "mask_hull" and empty.background_empty
-    np.testing.assert_allclose(empty.bounds_world, region)
+    composite_masks(results / "images.zarr", [m for m in order if m in masks], {"background": "scene"},
+                    workflow.root / "scene.zarr", progress=False)
+    scene = load_posed_images(results / "images.zarr", workflow.root / "scene.zarr")
+    assert scene.bounds_source == "frusta" and not scene.background_empty
+    np.testing.assert_allclose(scene.semantic_bounds_world, region)
+    assert np.prod(region[1] - region[0]) < 0.5 * np.prod(scene.bounds_world[1] - scene.bounds_world[0])
 
 
 def test_images_zarr_without_class_names_reads_as_an_orchard(tmp_path):

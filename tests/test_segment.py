@@ -525,3 +525,22 @@ def test_cli_reports_an_unknown_prompt_in_one_line(tmp_path):
     assert "unknown prompt 'trunk'" in result.stderr and "['apple', 'branch', 'leaf']" in result.stderr
     assert "orchard_segmenter.onnx" in result.stderr and "Traceback" not in result.stderr
     assert not (tmp_path / "trunk.zarr").exists()
+
+
+def test_background_auto_sees_a_backdrop_as_empty_and_a_room_as_a_scene(tmp_path):
+    """labels.background auto: a uniform dark backdrop around the masked object is empty (hull box),
+    a textured surrounding is a scene (the poses' box kept)."""
+    rng = np.random.default_rng(0)
+    object_mask = np.zeros((3, 30, 40), np.float32)
+    object_mask[:, 10:20, 15:25] = 1.0
+    backdrop = np.full((3, 30, 40, 3), 14, np.uint8) + rng.integers(0, 4, (3, 30, 40, 3), dtype=np.uint8)
+    room = rng.integers(0, 255, (3, 30, 40, 3), dtype=np.uint8)
+    found = {}
+    for name, images in (("backdrop", backdrop), ("room", room)):
+        path = write_images(tmp_path / f"{name}.zarr", images)
+        mask = write_mask(tmp_path / f"{name}-apple.zarr", "apple", object_mask)
+        out = composite_masks(path, [mask], {}, tmp_path / f"{name}-labels.zarr", progress=False)
+        found[name] = meta(open_artifact(out))
+    assert found["backdrop"]["background"] == "empty" and found["backdrop"]["background_spread"] <= 4
+    assert found["room"]["background"] == "scene" and found["room"]["background_spread"] > 50
+    assert found["room"]["background_from"] == "images"
