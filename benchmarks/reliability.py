@@ -15,6 +15,8 @@ Faults (each on a tiny orchard, the scene of tests/test_faults.py with more iter
   build fails with a clear error naming the folder and leaves no partial artifact;
 * two scenes built at once (--cores 2): survived when both finish and share no file;
 * determinism: the same scene built twice; every array of every artifact compared.
+* integrity: seconds per GB that open_artifact spends verifying an artifact's files against its
+  manifest (`integrity_check_seconds_per_gb`, a ~512 MB artifact, files in the page cache).
 
 `artifacts_lost` counts artifacts complete before a fault and missing or incomplete after it;
 `partial_artifacts_left` counts hidden partial/old artifacts and checkpoint temp files after the
@@ -261,6 +263,66 @@ def bad_input_corpus(parent: Path) -> dict:
             "failed": failed, "per_file": per_file}
 
 
+def integrity_check_seconds_per_gb(megabytes: int = 512, parent: Path | None = None, repeats: int = 3) -> dict:
+    """How long `open_artifact`'s integrity check takes: a ~512 MB artifact (incompressible
+    uint8 data in 4 MB chunks, like images and weights) written with create_artifact, then opened
+    `repeats` times with its files in the page cache (the usual case: the previous stage has
+    just written them) and once after evicting them (posix_fadvise DONTNEED: read from disk).
+    Seconds per GB of stored bytes; the best warm run, the cold run."""
+    import numpy as np
+
+    from srfpipe.artifacts import create_artifact, read_provenance
+
+    folder = Path(tempfile.mkdtemp(prefix="srfpipe-integrity-", dir=parent))
+    try:
+        path = folder / "big.zarr"
+        rows = max(1, megabytes * (1 << 20) // (1 << 22))  # 4 MB chunks
+        rng = np.random.default_rng(0)
+        started = time.perf_counter()
+        with create_artifact(path, "integrity-benchmark") as group:
+            array = group.create_array("data", shape=(rows, 1 << 22), chunks=(1, 1 << 22), dtype=np.uint8)
+            for row in range(rows):
+                array[row] = rng.integers(0, 256, 1 << 22, dtype=np.uint8)
+        write_seconds = time.perf_counter() - started
+        integrity = read_provenance(path)["integrity"]
+        gigabytes = integrity["bytes"] / 1e9
+
+        def timed(verify: bool = True) -> float:
+            t0 = time.perf_counter()
+            open_artifact(path, stage="integrity-benchmark", verify=verify)
+            return time.perf_counter() - t0
+
+        warm = [timed() for _ in range(repeats)]
+        cold = None
+        if hasattr(os, "posix_fadvise"):
+            for file in path.rglob("*"):
+                if file.is_file():
+                    fd = os.open(file, os.O_RDONLY)
+                    try:
+                        os.fsync(fd)
+                        os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
+                    finally:
+                        os.close(fd)
+            cold = timed()
+        unverified = min(timed(verify=False) for _ in range(repeats))
+        result = {
+            "seconds_per_gb": round(min(warm) / gigabytes, 3),
+            "cold_seconds_per_gb": round(cold / gigabytes, 3) if cold is not None else None,
+            "open_without_check_seconds": round(unverified, 4),
+            "gigabytes": round(gigabytes, 3),
+            "files": integrity["files"],
+            "algorithm": integrity["algorithm"],
+            "write_seconds": round(write_seconds, 2),
+            "warm_seconds": [round(s, 3) for s in warm],
+            "cold_seconds": round(cold, 3) if cold is not None else None,
+            "cpus": os.cpu_count(),
+        }
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    print(json.dumps({"integrity_check": result}), flush=True)
+    return result
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="fewer training steps (writes reliability_quick.json)")
@@ -277,6 +339,7 @@ def main() -> int:
     concurrent, determinism = concurrent_and_determinism(parent, args.quick)
     faults.append(concurrent)
     corpus = bad_input_corpus(parent) if not args.skip_corpus else {"tried": 0, "clear_error": 0}
+    integrity = integrity_check_seconds_per_gb(parent=parent)
 
     injected = [f for f in faults if f["injected"]]
     report = {
@@ -286,6 +349,8 @@ def main() -> int:
         "bad_inputs_clear_error": corpus["clear_error"],
         "artifacts_lost": sum(len(f.get("lost", [])) for f in faults),
         "partial_artifacts_left": sum(len(f.get("leftovers", [])) for f in faults),
+        "integrity_check_seconds_per_gb": integrity["seconds_per_gb"],
+        "integrity_check": integrity,
         "faults": faults,
         "determinism": determinism,
         "bad_inputs": corpus,
