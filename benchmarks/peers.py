@@ -37,6 +37,8 @@ curve rises). `time_to_nerfacto300_ratio` = nerfacto's time / srfpipe's time.
     python benchmarks/peers.py --quick        # fox only (no COLMAP refinement), budgets 1, 2, 4 min (~25 min)
     python benchmarks/peers.py --nsvenv DIR   # nerfstudio's environment (default $NSVENV or /tmp/nsvenv)
     python benchmarks/peers.py --scenes fox --preset fast       # as peers.json's entries (each scene measured on its own, --preset fast)
+    python benchmarks/peers.py --panel bottle beer  # nerfacto alone on captures.py's builds of panel captures
+                                                    # (5 and 10 min; peers.json `panel`; ~20 min a capture)
 
 Writes benchmarks/results/peers.json (`peers_quick.json`) and peers.png (PSNR against the clock).
 Opt-in and never part of CI: nerfstudio is no dependency of srfpipe (a 3.5 GB environment).
@@ -57,7 +59,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from captures import FOX, scene_configs
+from captures import FOX, PANEL, scene_configs
 from common import REPO, earlier_measurements, machine_info, result_path, rule_seconds, run_workflow, write_result, write_workdir
 
 SCENES = ["orchard", "fox"]
@@ -65,6 +67,7 @@ BUDGETS = [60, 120, 300, 600]
 QUICK_BUDGETS = [60, 120, 240]
 QUICK_SCENES = ["fox"]
 TARGET_BUDGET = 300
+PANEL_BUDGETS = [300.0, 600.0]  # the panel's nerfacto_psnr_5min and _10min
 NERFACTO_SAVE_EVERY = 20  # steps (~10 s at 0.5 s a step)
 # The light nerfacto of ../shared/peers/nerfstudio-setup.sh (fits minutes on 2 cores), with the
 # evaluation during training switched off (its time would count against nerfacto's clock).
@@ -112,7 +115,7 @@ def image_metrics(renders, targets) -> dict:
         squared += float(((render.astype(np.float64) - truth) ** 2).sum())
         values += truth.size
         per_view.append({"psnr": metrics.psnr(render, truth), "ssim": metrics.ssim(render, truth)})
-    return {"psnr": float(-10 * np.log10(max(squared / values, 1e-12))),
+    return {"psnr": metrics.psnr_from_mse(squared / values),
             "ssim": float(np.mean([v["ssim"] for v in per_view])), "per_view": per_view}
 
 
@@ -585,6 +588,59 @@ def run_scene(name: str, args, cache_dir: Path) -> dict:
     }
 
 
+def run_panel_capture(name: str, args, cache_dir: Path) -> dict:
+    """nerfacto alone on a panel capture that benchmarks/captures.py built: the very images.zarr and
+    held-out split srfpipe trained and was scored on (its numbers do not change when srfpipe does,
+    so each capture is measured once and captures.py re-runs srfpipe alone)."""
+    from srfpipe.artifacts import read_provenance
+    from srfpipe.srf.data import split_views
+
+    results = args.captures_workdir / "results" / name
+    if not (results / "srf.zarr").exists():
+        raise SystemExit(f"{results}: build the capture first (python benchmarks/captures.py --scenes {name})")
+    holdout = int(read_provenance(results / "srf.zarr")["holdout_every"])
+    views = read_views(results / "images.zarr")
+    _, heldout = split_views(len(views["images"]), holdout)
+    print(f"=== {name}: nerfacto on {len(views['images'])} views of {views['images'].shape[2]}x"
+          f"{views['images'].shape[1]}, held out {heldout.tolist()}", flush=True)
+    folder = args.workdir / "nerfacto" / name
+    content = export_nerfstudio(views, folder / "data")
+    run = train_nerfacto(args.nsvenv, folder / "data", folder, holdout, max(args.budgets), content)
+    timing = nerfacto_clock(args.nsvenv, run)
+    checkpoints = nerfacto_checkpoints(run, timing["clock"])
+    if max(checkpoints.values()) < max(args.budgets):
+        print(f"WARNING: nerfacto's log covers {max(checkpoints.values()):.0f} s, less than the budget")
+    renderer = NerfactoRenderer(args.nsvenv, run, views, heldout, folder / "renders")
+    nerf = evaluate_method(f"{name} nerfacto", checkpoints, renderer.metrics,
+                           Evaluations(cache_dir / f"{name}-evaluations.json"), args.budgets)
+    last_step = max(timing["clock"])
+    return {
+        "budgets": {b: {"nerfacto": {k: v for k, v in m.items() if k != "per_view"}} for b, m in nerf["budgets"].items()},
+        "heldout": {"indices": heldout.tolist(), "names": [views["names"][i] for i in heldout] if views["names"] else None,
+                    "width": int(views["images"].shape[2]), "height": int(views["images"].shape[1])},
+        "images": str(results / "images.zarr"),
+        "nerfacto": {"steps": last_step + 1, "clock_seconds": timing["clock"][last_step],
+                     "loop_wall_seconds": timing["wall"][last_step], "checkpoints": len(checkpoints),
+                     "save_every_steps": NERFACTO_SAVE_EVERY, "run": str(run), "command_args": NERFACTO_ARGS},
+    }
+
+
+def panel_main(args) -> int:
+    """--panel: nerfacto on captures.py's builds, merged into peers.json's `panel` object."""
+    cache_dir = args.workdir / "evaluations"
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    path = result_path("peers", False)
+    report = json.loads(path.read_text()) if path.exists() else {}
+    panel = report.setdefault("panel", {})
+    for name in args.panel:
+        entry = run_panel_capture(name, args, cache_dir)
+        panel[name] = dict(entry, budgets_seconds=args.budgets, machine=machine_info(quick=False))
+        write_result(path, report)  # after each capture: a long run keeps what it measured
+        for budget, pair in entry["budgets"].items():
+            print(f"{name:14} {budget:>5} s | nerfacto {pair['nerfacto']['psnr']:6.2f} dB, SSIM {pair['nerfacto']['ssim']:.3f}")
+    return 0
+
+
 # ----------------------------------------------------------------------------- report
 
 
@@ -667,6 +723,10 @@ def main() -> int:
     parser.add_argument("--refine", type=int, default=None,
                         help="extra evaluations per method to find when it reaches nerfacto's target (default 3, quick 2)")
     parser.add_argument("--workdir", type=Path, default=None)
+    parser.add_argument("--panel", nargs="+", default=None, choices=PANEL,
+                        help="nerfacto alone on these captures of benchmarks/captures.py's panel, on the images "
+                             "and split it built (--captures-workdir); budgets 300 and 600 s unless --budgets")
+    parser.add_argument("--captures-workdir", type=Path, default=REPO / "benchmarks" / "work" / "captures")
     parser.add_argument("--budgets", default=None, help=argparse.SUPPRESS)  # e.g. 20,40: a test of the script
     parser.add_argument("--target-budget", type=float, default=None, help=argparse.SUPPRESS)
     # images.downscale for every scene (a test of the script: small images render fast)
@@ -675,6 +735,11 @@ def main() -> int:
     args.nsvenv = args.nsvenv.resolve()
     if not (args.nsvenv / "bin" / "ns-train").exists():
         parser.error(f"{args.nsvenv}: no nerfstudio here; build it with bash ../shared/peers/nerfstudio-setup.sh {args.nsvenv}")
+    if args.panel:
+        args.budgets = [float(b) for b in args.budgets.split(",")] if args.budgets else PANEL_BUDGETS
+        args.workdir = (args.workdir or REPO / "benchmarks" / "work" / "peers").resolve()
+        args.captures_workdir = args.captures_workdir.resolve()
+        return panel_main(args)
     scenes = args.scenes or (QUICK_SCENES if args.quick else SCENES)
     if "fox" in scenes and not (FOX / "transforms.json").exists():
         parser.error(f"{FOX}: the fox capture is not there (../shared/data/fox beside the repository)")
