@@ -15,7 +15,9 @@ import sys
 STAGES = [
     ("orchard", "srfpipe.scenes.orchard", "generate the built-in procedural orchard capture"),
     ("plant", "srfpipe.scenes.plant", "generate the built-in plant capture (a thin sapling, millimetres, few far views)"),
-    ("poses", "srfpipe.poses.stage", "import camera poses (nerfstudio|blender|colmap) [+ COLMAP refinement] -> poses.zarr"),
+    ("frames", "srfpipe.poses.video", "choose a video's sharpest frames, spread over it -> a frames folder"),
+    ("poses", "srfpipe.poses.stage", "import camera poses (nerfstudio|blender|colmap), or find them by SfM "
+     "(images|video) [+ COLMAP refinement] -> poses.zarr"),
     ("downscale", "srfpipe.images", "undistort and downscale the images -> images.zarr"),
     ("segment", "srfpipe.segment.run", "per-prompt mask inference (onnx|import) -> masks/{prompt}.zarr"),
     ("composite", "srfpipe.segment.composite", "composite per-prompt masks into labels.zarr"),

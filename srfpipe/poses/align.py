@@ -75,3 +75,29 @@ def pose_errors(estimate: np.ndarray, reference: np.ndarray, scene_size: float, 
     trans = np.linalg.norm(estimate[:, :3, 3] - reference[:, :3, 3], axis=1) / scene_size
     return {"rot_err_deg": float(rot.mean()), "trans_err": float(trans.mean()),
             "rot_err_deg_max": float(rot.max()), "trans_err_max": float(trans.max())}
+
+
+def up_alignment(camera_to_world: np.ndarray) -> np.ndarray:
+    """4x4 rotation about the origin that turns the cameras' mean up vector to +z (`poses.up: auto`).
+
+    A camera's up is -y in the project's OpenCV convention (+y points down the image). The rotation
+    is the smallest one that does it (about the axis perpendicular to both), so a capture already
+    upright is left as it is.
+    """
+    import cv2
+
+    up = -np.asarray(camera_to_world, np.float64)[:, :3, 1].mean(0)
+    length = float(np.linalg.norm(up))
+    if length < 1e-6:
+        raise ValueError("poses.up auto: the cameras' up vectors cancel out (cameras held every way up)")
+    up /= length
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(up, z)
+    sin, cos = float(np.linalg.norm(axis)), float(up @ z)
+    rotation = np.eye(4)
+    if sin < 1e-12:
+        if cos < 0:
+            rotation[:3, :3] = np.diag([1.0, -1.0, -1.0])  # upside down: half a turn about x
+        return rotation
+    rotation[:3, :3] = cv2.Rodrigues(axis / sin * np.arctan2(sin, cos))[0]
+    return rotation

@@ -1,4 +1,5 @@
-"""Import camera poses (nerfstudio | blender | colmap | llff | orchard), optionally refine them with COLMAP.
+"""Import camera poses (nerfstudio | blender | colmap | llff | orchard), or recover them by structure from
+motion (images | video), optionally refine them with COLMAP.
 
 Writes `poses.zarr` (see docs/artifacts.md): world-frame `camera_to_world` in the project's OpenCV
 camera convention (`srfpipe.cameras`), full-resolution intrinsics and OpenCV distortion, optional
@@ -11,13 +12,14 @@ from __future__ import annotations
 
 import json
 import logging
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from srfpipe import cameras
 from srfpipe.config import ConfigError, add_options_arguments, stage_options, validate_scene
-from srfpipe.poses.align import perturb_poses
+from srfpipe.poses.align import perturb_poses, up_alignment
 from srfpipe.poses.blender import read_blender
 from srfpipe.poses.bounds import resolve_bounds
 from srfpipe.poses.capture import Capture, validate_capture
@@ -29,11 +31,17 @@ from srfpipe.poses.nerfstudio import read_nerfstudio
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("orchard", "plant", "nerfstudio", "blender", "colmap", "llff")
+FORMATS = ("orchard", "plant", "nerfstudio", "blender", "colmap", "llff", "images", "video")
+UNPOSED_FORMATS = ("images", "video")  # posed here, by structure from motion (srfpipe.poses.sfm)
 
 
-def load_capture(source: dict, capture_dir: str | Path | None = None) -> Capture:
-    """Import the capture described by a scene's `source` section; `capture_dir` overrides `source.path`."""
+def load_capture(source: dict, capture_dir: str | Path | None = None, options: dict | None = None,
+                 threads: int = -1, workdir: str | Path | None = None) -> Capture:
+    """Import the capture described by a scene's `source` section; `capture_dir` overrides `source.path`.
+
+    Unposed captures (images, video) are posed by structure from motion with the `poses` section
+    `options`; its scratch files, and a video's extracted frames (`frames/`), go to `workdir`.
+    """
     fmt = source.get("format")
     path = capture_dir if capture_dir is not None else source.get("path")
     if fmt not in FORMATS:
@@ -50,9 +58,21 @@ def load_capture(source: dict, capture_dir: str | Path | None = None) -> Capture
         capture = read_blender(path, allowed_roots=allowed)
     elif fmt == "llff":
         capture = read_llff(path, source.get("images_dir"), allowed_roots=allowed)
-    else:
+    elif fmt == "colmap":
         capture = read_colmap(path, source.get("images_dir"), source.get("model_dir"), allowed_roots=allowed)
-    capture = attach_ground_truth(capture)
+    else:
+        from srfpipe.poses.sfm import read_images, read_video
+
+        options = options or {}
+        if fmt == "images":
+            capture = read_images(path, source, options, threads=threads, workdir_parent=workdir)
+        else:
+            frames_dir = Path(workdir if workdir is not None else path.parent) / "frames"
+            capture = read_video(path, source, options, threads=threads, workdir_parent=workdir,
+                                 frames_dir=frames_dir)
+    if fmt not in UNPOSED_FORMATS:
+        # a generator's ground truth lies in its world frame, not in the arbitrary one of SfM
+        capture = attach_ground_truth(capture)
     validate_capture(capture)
     return capture
 
@@ -86,9 +106,23 @@ def import_poses(source: dict, capture_dir: str | Path | None, options: dict, ou
         source.setdefault("path", str(capture_dir))
     source = validate_scene({"source": source}, "source")["source"]
     options = validate_scene({"poses": dict(options)}, "poses options")["poses"]
-    capture = load_capture(source, capture_dir)
+    if options["refine"] == "colmap" and options["matcher"] == "retrieval":
+        raise ConfigError("poses.matcher: retrieval is for structure from motion (source.format images or video); "
+                          "COLMAP refinement matches with auto, exhaustive, poses, sequential or spatial")
+    capture = load_capture(source, capture_dir, options=options, threads=threads, workdir=Path(out).parent)
     check_enough_images(capture, options["min_images"])
     log.info("imported %d images (%s) from %s", len(capture), capture.source_format, capture.source_file)
+    up_rotation = None
+    if options.get("up", "none") == "auto":
+        if capture.ground_truth is not None:
+            raise ConfigError(f"{capture.source_file}: poses.up auto would turn the world away from the frame of "
+                              f"its ground truth ({capture.ground_truth})")
+        up_rotation = up_alignment(capture.camera_to_world)
+        capture = replace(capture, camera_to_world=cameras.transform_poses(up_rotation, capture.camera_to_world),
+                          points_world=None if capture.points_world is None
+                          else cameras.transform_points(up_rotation, capture.points_world))
+        log.info("poses.up auto: turned the world by %.1f degrees so the cameras' mean up is +z",
+                 np.degrees(np.arccos(np.clip((np.trace(up_rotation[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
 
     poses = capture.camera_to_world
     points = capture.points_world
@@ -137,6 +171,7 @@ def import_poses(source: dict, capture_dir: str | Path | None, options: dict, ou
             ground_truth=str(capture.ground_truth) if capture.ground_truth else None,
             perturbed=perturbed,
             refinement=refinement,
+            up_rotation=up_rotation,
             **capture.extra,
         )
     log.info("wrote %s: %d cameras, bounds %s (%s)", out, len(capture), bounds.round(3).tolist(), bounds_source)
@@ -147,11 +182,12 @@ def add_arguments(parser) -> None:
     add_options_arguments(parser, "poses")
     parser.add_argument(
         "--source", metavar="JSON", default=None,
-        help="JSON object: the scene's 'source' section (format nerfstudio|blender|colmap|llff|orchard, "
-        "path, images_dir, model_dir); overrides the --scene file's",
+        help="JSON object: the scene's 'source' section (format nerfstudio|blender|colmap|llff|orchard|"
+        "images|video, path, images_dir, model_dir, max_frames); overrides the --scene file's",
     )
     parser.add_argument("--capture", metavar="DIR", default=None,
-                        help="capture folder (overrides source.path; the orchard's generated capture)")
+                        help="capture folder (overrides source.path; the orchard's generated capture, a video's "
+                        "frames folder written by `srfpipe frames`)")
     parser.add_argument("--out", required=True, metavar="ZARR", help="poses.zarr to write (atomically)")
     parser.add_argument("--threads", type=int, default=-1, help="COLMAP threads (-1: all cores)")
 

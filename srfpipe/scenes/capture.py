@@ -22,6 +22,7 @@ import numpy as np
 from srfpipe.artifacts import atomic_directory
 
 CAMERA_CONVENTION = "camera_to_world below is OpenCV (+x right, +y down, +z forward)"
+VIDEO_FILE = "video.avi"  # write_capture(video_fps=...): the views as one video
 
 
 # ----------------------------------------------------------------------------- cameras
@@ -68,6 +69,33 @@ def ring_poses(
             eye = np.array([rad * np.cos(a), rad * np.sin(a), h])
             poses.append(look_at(eye, target))
     return np.stack(poses)
+
+
+def orbit_poses(views: int, heights: list[float], radius: float, target: np.ndarray) -> np.ndarray:
+    """(views, 4, 4) camera_to_world along one continuous turn round `target` (a video's walk):
+    the azimuth steps evenly, the height climbs from the lowest to the highest of `heights`, so
+    consecutive frames overlap and the last one comes back beside the first (a loop to close)."""
+    azimuths = np.linspace(0.0, 2.0 * np.pi, views, endpoint=False)
+    climb = np.linspace(min(heights), max(heights), views)
+    return np.stack([look_at(np.array([radius * np.cos(a), radius * np.sin(a), h]), target)
+                     for a, h in zip(azimuths, climb)])
+
+
+def write_video(frames: list[Path], path: Path, fps: float) -> None:
+    """The image files `frames`, in order, as a Motion-JPEG AVI (OpenCV's own encoder, present in
+    every build; quality 95): what a phone's video gives the `video` source format."""
+    import cv2
+
+    first = cv2.imread(str(frames[0]))
+    writer = cv2.VideoWriter(str(path), cv2.CAP_OPENCV_MJPEG, cv2.VideoWriter_fourcc(*"MJPG"), fps,
+                             (first.shape[1], first.shape[0]), [cv2.VIDEOWRITER_PROP_QUALITY, 95])
+    if not writer.isOpened():
+        raise RuntimeError(f"{path}: OpenCV cannot write a Motion-JPEG video")
+    try:
+        for frame in frames:
+            writer.write(cv2.imread(str(frame)))
+    finally:
+        writer.release()
 
 
 def intrinsics_for(width: int, height: int, fov_deg: float) -> np.ndarray:
@@ -169,6 +197,7 @@ def write_capture(
     out: str | Path, renderer, poses: np.ndarray, intrinsics: np.ndarray, width: int, height: int,
     classes: list[str], meshes: dict, scene: dict, files: dict | None = None, progress: bool = True,
     desc: str = "views", sensor_noise: float = 0.0, noise_seed: int = 0, distortion=None,
+    video_fps: float | None = None,
 ) -> dict:
     """Render every pose and write the capture folder atomically; returns scene.json as written.
 
@@ -176,7 +205,8 @@ def write_capture(
     scene.json keys (world frame, bounds, parameters, ...); `files` maps further ground-truth file
     names to JSON-able values (e.g. apples.json). `sensor_noise` (8-bit levels, 0 = none) is drawn
     per view from `noise_seed`. `distortion` (k1, k2, p1, p2) renders through an OpenCV lens, and
-    transforms.json records it.
+    transforms.json records it. With `video_fps`, the views (in order) are also written as the
+    video `VIDEO_FILE` at that frame rate, frame i being view i.
     """
     out = Path(out)
     names = frame_names(len(poses))
@@ -203,5 +233,8 @@ def write_capture(
             "camera_to_world": np.asarray(poses).tolist(),
             "class_pixel_counts": dict(zip(classes, class_pixels.tolist())),
         }
+        if video_fps is not None:
+            write_video([tmp / "images" / f"{name}.png" for name in names], tmp / VIDEO_FILE, video_fps)
+            full["video"] = {"file": VIDEO_FILE, "fps": video_fps, "frames": len(names)}
         (gt / "scene.json").write_text(json.dumps(full, indent=1))
     return full

@@ -13,6 +13,8 @@ Output (a nerfstudio capture folder plus ground truth, see docs/artifacts.md)::
     OUT/ground_truth/meshes/{apple,branch,leaf,ground}.ply
     OUT/ground_truth/apples.json   [{"centre": [x, y, z], "radius": r}, ...]
     OUT/ground_truth/scene.json    classes, units, bounds_world of the tree, parameters, intrinsics, poses
+    OUT/video.avi                  with `video: true`: the views as a Motion-JPEG video (frame i = view i),
+                                   along one continuous turn (`orbit_poses`) instead of the rings
 
 The shared layout and the camera rings are in `srfpipe.scenes.capture`. Rendering is CPU ray
 casting (open3d RaycastingScene) with Lambert shading, sun shadows, a sky gradient and 3D
@@ -29,13 +31,14 @@ import numpy as np
 
 from srfpipe.config import stage_options, validate_scene
 from srfpipe.scenes.capture import (  # noqa: F401 (look_at: imported from here by callers)
-    add_generator_arguments, intrinsics_for, look_at, ring_poses, write_capture,
+    add_generator_arguments, intrinsics_for, look_at, orbit_poses, ring_poses, write_capture,
 )
 from srfpipe.scenes.raycast import light_direction
 
 log = logging.getLogger(__name__)
 
 CLASSES = ["background", "apple", "branch", "leaf"]
+VIDEO_FPS = 10.0  # orchard.video: the frame rate written (timestamps only: every view is one frame)
 BOUNDS_MARGIN = 0.1  # metres around the tree's mesh in bounds_world
 SUN_ELEVATION_DEG = (40.0, 65.0)  # range over seeds
 
@@ -80,7 +83,10 @@ def generate_orchard(out_dir: str | Path, progress: bool = True, **options) -> P
                     len(tree.apple_centres), params["n_apples"])
     sun = sun_direction(rng)
     target = np.array([0.0, 0.0, 0.55 * params["tree_height"]])
-    poses = ring_poses(params["views"], params["ring_heights"], params["ring_radius"], target, rng)
+    if params.get("video"):
+        poses = orbit_poses(params["views"], params["ring_heights"], params["ring_radius"], target)
+    else:
+        poses = ring_poses(params["views"], params["ring_heights"], params["ring_radius"], target, rng)
     width, height = params["width"], params["height"]
     scene = {
         "world_frame": "metres, z up, ground plane z = 0, trunk base at the origin",
@@ -97,6 +103,7 @@ def generate_orchard(out_dir: str | Path, progress: bool = True, **options) -> P
         scene, files={"apples.json": [{"centre": c.tolist(), "radius": tree.apple_radius}
                                       for c in tree.apple_centres]},
         progress=progress, desc="orchard views", distortion=params.get("distortion"),
+        video_fps=VIDEO_FPS if params.get("video") else None,
     )
     log.info(
         "orchard seed %d: %d segments, %d leaves, %d apples; %d views of %dx%d in %.1f s -> %s",

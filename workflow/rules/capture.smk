@@ -1,5 +1,6 @@
 # The built-in procedural captures (nerfstudio format + ground truth), and pose import.
-# Both generators write results/{scene}/capture: each rule is constrained to its format's scenes.
+# Both generators (and a video's frames) write results/{scene}/capture: each rule is constrained to
+# its format's scenes.
 
 
 rule orchard_capture:
@@ -39,6 +40,29 @@ rule plant_capture:
         runtime=10,
     shell:
         "srfpipe plant --options {params.options:q} --out {output:q} > {log:q} 2>&1"
+
+
+# A video's frames (srfpipe/poses/video.py): the sharpest of equal windows, at most source.max_frames,
+# written with their timestamps as results/{scene}/capture, which the poses rule poses by SfM.
+rule video_frames:
+    input:
+        video=lambda wildcards: SCENES[wildcards.scene]["source"]["path"],
+    output:
+        directory(f"{RESULTS}/{{scene}}/capture"),
+    wildcard_constraints:
+        scene=scenes_of_format("video"),
+    params:
+        options=scene_section("source"),
+    log:
+        "logs/{scene}/video_frames.log",
+    benchmark:
+        "benchmarks/runs/{scene}/video_frames.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+        runtime=30,
+    shell:
+        "srfpipe frames --options {params.options:q} --video {input.video:q} --out {output:q} > {log:q} 2>&1"
 
 
 rule poses:

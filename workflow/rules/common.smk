@@ -82,9 +82,14 @@ def scenes_of_format(fmt):
     return "|".join(re.escape(name) for name in sorted(names)) or f"NO_{fmt.upper()}_SCENES"
 
 
+# source.format values whose capture folder a rule writes from source.path (rule video_frames)
+EXTRACTED_FORMATS = ("video",)
+
+
 def capture_dir(wildcards):
-    """The capture folder: generated for the built-in orchard and plant, a folder on disk otherwise."""
+    """The capture folder: generated for the built-in orchard and plant, a video's chosen frames
+    (rule video_frames), a folder on disk otherwise."""
     source = SCENES[wildcards.scene]["source"]
-    if source["format"] in GENERATED_FORMATS:
+    if source["format"] in GENERATED_FORMATS + EXTRACTED_FORMATS:
         return f"{RESULTS}/{wildcards.scene}/capture"
     return source["path"]

@@ -1,0 +1,191 @@
+"""Unposed captures: a video's frames chosen by sharpness, structure from motion (pycolmap) on photos
+and on a video, `poses.up: auto`, and the errors when nothing can be posed.
+
+The SfM captures are the built-in orchard at a small size, walked round in one turn
+(`orchard.video: true`), whose generator poses are known: the recovered poses are compared with
+them after a similarity alignment (`srfpipe.poses.align.pose_errors`).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from srfpipe import cameras
+from srfpipe.artifacts import meta, open_artifact
+from srfpipe.poses import import_poses
+from srfpipe.poses.align import pose_errors, up_alignment
+from srfpipe.poses.video import choose_frames, extract_frames, read_frames
+
+# 36 views of 320 x 240 round the tree, 10 degrees apart: SfM in about 10 s on 2 cores. At this
+# size the tree gives a few hundred SIFT features a view; the recovered turn bends by a degree or
+# two (1.3 to 1.7 degrees mean rotation error measured), far more than at a phone's resolution.
+ORBIT = {"seed": 0, "views": 36, "width": 320, "height": 240, "video": True, "n_apples": 12}
+
+
+@pytest.fixture(scope="module")
+def orbit(tmp_path_factory):
+    from srfpipe.scenes.orchard import generate_orchard
+
+    root = generate_orchard(tmp_path_factory.mktemp("orbit") / "capture", progress=False, **ORBIT)
+    scene = json.loads((root / "ground_truth" / "scene.json").read_text())
+    return root, np.array(scene["camera_to_world"]), np.array(scene["bounds_world"])
+
+
+def _check_recovered(group, truth: np.ndarray, scene_size: float, names: list[str]) -> dict:
+    info = meta(group)
+    sfm = info["sfm"]
+    registered = [int(name.rsplit("_", 1)[1]) for name in info["names"]]
+    assert info["names"] == [n for n in names if n in info["names"]]  # in capture order
+    errors = pose_errors(group["camera_to_world"][:], truth[registered], scene_size)
+    assert sfm["registered_fraction"] >= 0.9, sfm
+    assert errors["rot_err_deg"] < 3.0, errors
+    assert errors["trans_err"] < 0.08, errors
+    assert sfm["reprojection_error_px"] < 1.0 and sfm["num_points3D"] > 500
+    assert len(info["unregistered_images"]) == sfm["n_images"] - sfm["n_registered"]
+    return {**errors, "registered_fraction": sfm["registered_fraction"], "seconds": sfm["seconds"]}
+
+
+def test_photos_are_posed_by_structure_from_motion(orbit, tmp_path):
+    root, truth, bounds = orbit
+    started = time.perf_counter()
+    out = import_poses({"format": "images", "path": str(root)}, None, {"up": "auto"}, tmp_path / "poses.zarr",
+                       threads=2)
+    group = open_artifact(out, stage="poses")
+    info = meta(group)
+    assert info["source_format"] == "images" and info["sfm"]["matcher"] == "exhaustive"
+    assert all(p.startswith("images/frame_") for p in info["image_paths"])  # the capture's images/ subfolder
+    assert info["ground_truth"] is None  # the generator's frame is not SfM's
+    result = _check_recovered(group, truth, float(np.max(bounds[1] - bounds[0])),
+                              [f"frame_{i:05d}" for i in range(len(truth))])
+    # up: auto turned the world so that the cameras' mean up (-y) is +z
+    up = -group["camera_to_world"][:][:, :3, 1].mean(0)
+    assert up[2] / np.linalg.norm(up) > 0.999
+    assert np.allclose(np.array(info["up_rotation"])[:3, :3] @ np.array(info["up_rotation"])[:3, :3].T, np.eye(3))
+    assert group["points_world"].shape[0] == info["sfm"]["num_points3D"]
+    print(f"\nphotos: {result}, {time.perf_counter() - started:.1f} s in all")
+
+
+def test_video_is_posed_through_its_chosen_frames(orbit, tmp_path):
+    root, truth, bounds = orbit
+    video = root / "video.avi"
+    assert video.is_file()
+    out = import_poses({"format": "video", "path": str(video), "max_frames": len(truth)}, None, {},
+                       tmp_path / "scene" / "poses.zarr", threads=2)
+    group = open_artifact(out, stage="poses")
+    info = meta(group)
+    sfm = info["sfm"]
+    assert sfm["matcher"] == "sequential" and sfm["shared_camera"] and len(sfm["cameras"]) == 1
+    # the frames were written next to poses.zarr, and the capture's images lie inside that folder
+    frames = tmp_path / "scene" / "frames"
+    assert info["capture_root"] == str(frames.resolve()) and (frames / "frames.json").is_file()
+    assert all((frames / p).is_file() for p in info["image_paths"])
+    assert info["frame_indices"] == [int(n.rsplit("_", 1)[1]) for n in info["names"]]
+    assert np.allclose(np.diff(info["frame_timestamps_s"]), np.diff(info["frame_indices"]) / 10.0, atol=1e-3)
+    result = _check_recovered(group, truth, float(np.max(bounds[1] - bounds[0])),
+                              [f"frame_{i:05d}" for i in range(len(truth))])
+    print(f"\nvideo: {result}")
+
+
+def _textured(rng, width=160, height=120) -> np.ndarray:
+    small = rng.uniform(0, 255, (height // 8, width // 8, 3)).astype(np.float32)
+    return cv2.resize(small, (width, height), interpolation=cv2.INTER_CUBIC).clip(0, 255).astype(np.uint8)
+
+
+def _write_video(path, frames, fps=25.0):
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (frames[0].shape[1], frames[0].shape[0]))
+    assert writer.isOpened()
+    for frame in frames:
+        writer.write(frame)
+    writer.release()
+
+
+def test_video_frames_are_chosen_by_sharpness_and_spacing(tmp_path):
+    rng = np.random.default_rng(0)
+    texture = _textured(rng, 480, 120)
+    frames = [np.ascontiguousarray(texture[:, 4 * i:4 * i + 160]) for i in range(24)]
+    blurred = [3, 8, 15]
+    for i in blurred:
+        frames[i] = cv2.GaussianBlur(frames[i], (0, 0), 4.0)
+    video = tmp_path / "walk.avi"
+    _write_video(video, frames)
+
+    # 12 windows of 2 frames: each window's sharper frame, never a blurred one
+    out = extract_frames(video, tmp_path / "frames", max_frames=12)
+    paths, record = read_frames(out)
+    indices = [f["index"] for f in record["frames"]]
+    assert len(indices) == 12 and not set(indices) & set(blurred)
+    assert [i // 2 for i in indices] == list(range(12))  # one per window: spread over the video
+    assert all((out / p).is_file() for p in paths) and paths[0] == f"images/frame_{indices[0]:05d}.png"
+    assert record["n_video_frames"] == 24 and record["fps"] == pytest.approx(25.0)
+    assert [f["timestamp_s"] for f in record["frames"]] == pytest.approx([i / 25.0 for i in indices], abs=1e-3)
+    sharp = [f["sharpness"] for f in record["frames"]]
+    assert min(sharp) > 3 * max(cv2.Laplacian(cv2.cvtColor(frames[i], cv2.COLOR_BGR2GRAY), cv2.CV_64F).var()
+                                for i in blurred)
+    # every frame may be kept: a shaken one is still dropped, against its neighbours
+    paths, record = read_frames(extract_frames(video, tmp_path / "all", max_frames=100))
+    assert record["blurred_frames"] == blurred and len(paths) == 24 - len(blurred)
+
+
+def test_choose_frames_windows():
+    scores = np.array([1.0, 5.0, 2.0, 2.5, 9.0, 1.0, 3.0])
+    assert choose_frames(scores, 3) == ([1, 4, 6], [])  # windows [0, 2), [2, 5), [5, 7)
+    assert choose_frames(np.ones(5), 10) == ([0, 1, 2, 3, 4], [])
+
+
+def test_nothing_registered_is_an_error_naming_the_folder(tmp_path):
+    rng = np.random.default_rng(1)
+    folder = tmp_path / "noise photos"
+    folder.mkdir()
+    for i in range(5):
+        cv2.imwrite(str(folder / f"IMG {i}.jpg"), rng.integers(0, 256, (96, 128, 3), dtype=np.uint8))
+    out = tmp_path / "poses.zarr"
+    with pytest.raises(ValueError, match=r"noise photos.*structure from motion registered none of the 5 images"):
+        import_poses({"format": "images", "path": str(folder)}, None, {}, out, threads=2)
+    assert not out.exists() and not list(tmp_path.glob(".colmap-sfm-*"))
+
+
+def test_empty_folder_and_pose_matchers_are_refused(tmp_path):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match=r"empty: no photos"):
+        import_poses({"format": "images", "path": str(tmp_path / "empty")}, None, {}, tmp_path / "p.zarr")
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(photos / f"{i}.png"), _textured(np.random.default_rng(i)))
+    with pytest.raises(ValueError, match=r"poses.matcher 'poses' needs known poses"):
+        import_poses({"format": "images", "path": str(photos)}, None, {"matcher": "poses"}, tmp_path / "p.zarr")
+    with pytest.raises(FileNotFoundError, match="neither a video file nor a frames folder"):
+        import_poses({"format": "video", "path": str(photos)}, None, {}, tmp_path / "p.zarr")
+
+
+def test_up_alignment_turns_the_mean_up_to_z():
+    from srfpipe.scenes.capture import look_at
+
+    angles = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    ring = np.stack([look_at([3 * np.cos(a), 3 * np.sin(a), 1.0], [0, 0, 0.5]) for a in angles])
+    np.testing.assert_allclose(up_alignment(ring), np.eye(4), atol=1e-9)  # upright already: left alone
+    tilt = np.eye(4)
+    tilt[:3, :3] = cv2.Rodrigues(np.array([0.7, -1.9, 0.4]))[0]
+    tilted = cameras.transform_poses(tilt, ring)
+    turned = cameras.transform_poses(up_alignment(tilted), tilted)
+    up = -turned[:, :3, 1].mean(0)
+    assert up[2] / np.linalg.norm(up) == pytest.approx(1.0, abs=1e-9)
+    upside_down = cameras.transform_poses(np.diag([1.0, -1.0, -1.0, 1.0]), ring)
+    flipped = cameras.transform_poses(up_alignment(upside_down), upside_down)
+    assert (-flipped[:, :3, 1].mean(0))[2] > 0.9
+
+
+def test_workflow_extracts_a_video_before_its_poses(workflow, tmp_path):
+    video = tmp_path / "walk.avi"
+    _write_video(video, [_textured(np.random.default_rng(i)) for i in range(4)])
+    workflow.write_scene("walk", {"source": {"format": "video", "path": str(video), "max_frames": 3},
+                                  "segmentation": {"prompts": []}})
+    workflow.write_config({"scenes_dir": "config/scenes", "scenes": ["walk"], "results_dir": "results",
+                           "final_artifact": "poses"})
+    jobs = workflow.dry_run_jobs()
+    assert jobs.get("video_frames") == 1 and jobs.get("poses") == 1
