@@ -30,6 +30,60 @@ STAGES = [
 ]
 
 
+# Arguments that name what a stage writes; every other path argument (metavar below) is an input.
+OUTPUT_ARGUMENTS = ("out", "checkpoints", "metrics_log")
+PATH_METAVARS = ("ZARR", "DIR", "FILE", "YAML", "GIF", "JSONL")
+
+
+def stage_paths(parser: argparse.ArgumentParser, args) -> tuple[list[tuple[str, str]], list[tuple[str, str]]]:
+    """(outputs, inputs) of the parsed stage command, each as (option, path) pairs: the outputs are
+    OUTPUT_ARGUMENTS, the inputs every other argument whose metavar names a file or folder, and the
+    capture folder a `--source` JSON object gives as `path`."""
+    import json
+
+    outputs, inputs = [], []
+    for action in parser._actions:
+        value = getattr(args, action.dest, None)
+        if value is None or not action.option_strings:
+            continue
+        option = action.option_strings[-1]
+        if action.dest in OUTPUT_ARGUMENTS:
+            outputs.append((option, str(value)))
+        elif action.metavar in PATH_METAVARS:
+            inputs += [(option, str(v)) for v in (value if isinstance(value, list) else [value])]
+        elif action.dest == "source" and isinstance(value, str):
+            try:
+                source = json.loads(value)
+            except json.JSONDecodeError:
+                continue  # the stage reports it
+            if isinstance(source, dict) and isinstance(source.get("path"), str):
+                inputs.append((f"{option} path", source["path"]))
+    return outputs, inputs
+
+
+def refuse_output_over_input(parser: argparse.ArgumentParser, args) -> None:
+    """An output that is one of the stage's inputs, lies inside one, or holds one would be
+    destroyed or replaced by the stage's atomic write (`downscale --out` equal to its `--poses`
+    replaced the poses with images): refused before anything runs, naming both."""
+    from pathlib import Path
+
+    outputs, inputs = stage_paths(parser, args)
+    for out_option, out in outputs:
+        out_path = Path(out).expanduser().resolve()
+        for in_option, path in inputs:
+            in_path = Path(path).expanduser().resolve()
+            if out_path == in_path:
+                how = "is"
+            elif out_path.is_relative_to(in_path):
+                how = "lies inside"
+            elif in_path.is_relative_to(out_path):
+                how = "holds"
+            else:
+                continue
+            raise ValueError(f"{out_option} {out} {how} the input {in_option} {path}: writing it would destroy "
+                             f"the input; choose another output path")
+
+
 def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     """The argument parser; only the `selected` stage's module is imported (keeps --help fast)."""
     from srfpipe import __version__
@@ -52,7 +106,7 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
             formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         )
         module.add_arguments(stage_parser)
-        stage_parser.set_defaults(_run=module.run)
+        stage_parser.set_defaults(_run=module.run, _parser=stage_parser)
     return parser
 
 
@@ -70,6 +124,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
+        refuse_output_over_input(args._parser, args)
         result = args._run(args)
     except (ValueError, OSError, RuntimeError) as exc:
         # Bad input, a full disk, a read-only folder: one clear line naming the file and the

@@ -50,12 +50,23 @@ def _with_defaults(validator_class):
 DefaultFillingValidator = _with_defaults(jsonschema.Draft202012Validator)
 
 
-def validate_scene(scene: dict, source: str = "<scene>") -> dict:
-    """Validate a scene dict in place (defaults filled in) and return it."""
+def validate_scene(scene: dict, source: str = "<scene>", whole: bool = False) -> dict:
+    """Validate a scene dict in place (defaults filled in) and return it.
+
+    `whole`: the dict is a whole scene (a scene file), not one section of it: the classes its
+    occupancy section names are checked against its prompts even when it leaves segmentation at
+    the defaults. A section alone (`{"occupancy": ...}`, as stages validate their options) does
+    not know the scene's prompts, so unless it also holds `segmentation` that check is left out.
+    """
     if scene is None:
         scene = {}
     if not isinstance(scene, dict):
         raise ConfigError(f"{source}: a scene file must hold a mapping, got {type(scene).__name__}")
+    # the roles the scene itself names (the schema's default roles need not be among its prompts)
+    occupancy = scene.get("occupancy")
+    named_roles = {role: occupancy[role] for role in ("reach", "avoid")
+                   if isinstance(occupancy, dict) and role in occupancy}
+    knows_prompts = whole or "segmentation" in scene
     apply_preset(scene)
     errors = sorted(DefaultFillingValidator(load_schema()).iter_errors(scene), key=lambda e: list(e.path))
     if errors:
@@ -65,6 +76,8 @@ def validate_scene(scene: dict, source: str = "<scene>") -> dict:
             lines.append(f"{source}: {key}: {error.message}{_suggestion(error)}")
         raise ConfigError("\n".join(lines))
     problems = contradictions(scene)
+    if knows_prompts:
+        problems += unknown_role_classes(named_roles, scene["segmentation"]["prompts"])
     if problems:
         raise ConfigError("\n".join(f"{source}: {problem}" for problem in problems))
     return scene
@@ -120,6 +133,25 @@ def contradictions(scene: dict) -> list[str]:
     return problems
 
 
+def unknown_role_classes(roles: dict, prompts: list[str]) -> list[str]:
+    """'occupancy.reach: 'aple' is not a prompt (...); did you mean 'apple'?' for every class a role
+    names that segmentation.prompts does not have (its distance field would silently be missing)."""
+    problems = []
+    for role, names in roles.items():
+        for name in names:
+            if name in prompts:
+                continue
+            if not prompts:
+                problems.append(f"occupancy.{role}: {name!r} is not a prompt (segmentation.prompts is empty: "
+                                f"the scene has no classes; remove it or add the prompt)")
+                continue
+            close = difflib.get_close_matches(str(name), prompts, n=1, cutoff=0.6)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            problems.append(f"occupancy.{role}: {name!r} is not a prompt "
+                            f"(segmentation.prompts: {', '.join(prompts)}){hint}")
+    return problems
+
+
 def load_scene(path: str | Path) -> dict:
     """Read and validate one scene YAML file."""
     path = Path(path)
@@ -129,7 +161,7 @@ def load_scene(path: str | Path) -> dict:
         scene = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML ({exc})") from exc
-    return validate_scene(scene, str(path))
+    return validate_scene(scene, str(path), whole=True)
 
 
 def section_defaults(section: str) -> dict:

@@ -510,3 +510,253 @@ def tiny_field(tmp_path_factory):
     images, labels = write_scene(folder, views=6, width=24, height=16)
     train(images, labels, folder / "srf.zarr", tiny_options(iterations=4, checkpoint_every=0), holdout_every=3)
     return SemanticRadianceField.load(folder / "srf.zarr", device="cpu")
+
+
+# ------------------------------------------------------------------ issue 32: hostile but quiet inputs
+# Each of these once passed without a word: a soft mask read as certain, 16-bit 0/255 masks read as
+# nearly empty, a role naming a class that is no prompt, a run that diverged to NaN and wrote its
+# field, an output path that replaced its own input.
+
+
+def _import_masks_setup(tmp_path, masks: dict[int, np.ndarray], n: int = 2):
+    """images.zarr of n 40x30 frames and an import folder holding `masks` {frame: array} for 'apple'."""
+    from srfpipe.segment.run import prompt_options
+    from tests.test_segment import options, red_blue_images, write_images
+
+    images = write_images(tmp_path / "images.zarr", red_blue_images(n=n, width=40, height=30))
+    folder = tmp_path / "masks"
+    folder.mkdir()
+    for i, mask in masks.items():
+        assert cv2.imwrite(str(folder / f"frame_{i:05d}_apple.png"), mask)
+    opts = prompt_options(options(backend="import", **{"import": {"path": str(folder)}}), "apple")
+    return images, folder, opts
+
+
+def _segment(images, opts, out):
+    from srfpipe.segment.run import segment_images
+    from tests.test_segment import read_masks
+
+    return read_masks(segment_images(images, "apple", opts, out, progress=False))
+
+
+@pytest.mark.hostile
+def test_import_soft_mask_whose_maximum_is_1_is_not_read_as_certain(tmp_path, caplog):
+    """The value range is decided per prompt: a soft 8-bit mask that reaches 1 (of 255) in one frame
+    is probability 1/255 there, as the prompt's other masks say 8-bit soft, not a 0/1 binary mask."""
+    faint = np.zeros((30, 40), np.uint8)
+    faint[5:10, 5:10] = 1
+    soft = np.zeros((30, 40), np.uint8)
+    soft[10:20, 10:30] = 200
+    images, _, opts = _import_masks_setup(tmp_path, {0: faint, 1: soft})
+    with caplog.at_level("INFO", logger="srfpipe.segment.import_backend"):
+        masks = _segment(images, opts, tmp_path / "apple.zarr")
+    assert masks[0].max() == pytest.approx(1 / 255)
+    assert masks[1].max() == pytest.approx(200 / 255)
+    assert "prompt 'apple': 2 masks, 8-bit, values 0..200, read as probability value/255" in caplog.text
+    assert "frame_00000_apple.png holds only 0 and 1" in caplog.text
+
+
+@pytest.mark.hostile
+def test_import_masks_that_are_all_0_or_1_are_binary(tmp_path, caplog):
+    a = np.zeros((30, 40), np.uint8)
+    a[5:10, 5:10] = 1
+    images, _, opts = _import_masks_setup(tmp_path, {0: a, 1: np.zeros_like(a)})
+    with caplog.at_level("INFO", logger="srfpipe.segment.import_backend"):
+        masks = _segment(images, opts, tmp_path / "apple.zarr")
+    assert masks[0][5:10, 5:10].min() == 1.0 and masks[1].max() == 0.0
+    assert "2 masks, 8-bit, values 0..1, read as binary 0/1" in caplog.text
+
+
+@pytest.mark.hostile
+@pytest.mark.parametrize("high, expected, read_as", [
+    (255, 1.0, r"16-bit, values 0..255, read as probability value/255 \(8-bit masks stored in 16 bits, binary 0/255\)"),
+    (65535, 1.0, r"16-bit, values 0..65535, read as probability value/65535"),
+    (32768, 32768 / 65535, r"16-bit, values 0..32768, read as probability value/65535"),
+], ids=["8bit_in_16bit", "full_16bit", "soft_16bit"])
+def test_import_16_bit_masks_read_on_the_scale_their_values_show(tmp_path, caplog, high, expected, read_as):
+    """16-bit masks holding 0/255 (an 8-bit mask saved in 16 bits) are binary, not 255/65535 = 0.004."""
+    mask = np.zeros((30, 40), np.uint16)
+    mask[5:15, 10:30] = high
+    images, _, opts = _import_masks_setup(tmp_path, {0: mask, 1: mask})
+    with caplog.at_level("INFO", logger="srfpipe.segment.import_backend"):
+        masks = _segment(images, opts, tmp_path / "apple.zarr")
+    assert masks[:, 5:15, 10:30].min() == pytest.approx(expected, abs=1 / 255)
+    assert re.search(read_as, caplog.text), caplog.text
+    from srfpipe.artifacts import meta
+
+    assert meta(open_artifact(tmp_path / "apple.zarr"))["mask_values"]["bits"] == 16
+
+
+@pytest.mark.hostile
+def test_import_8_and_16_bit_masks_mixed_in_one_prompt_are_refused(tmp_path):
+    eight = np.zeros((30, 40), np.uint8)
+    sixteen = np.zeros((30, 40), np.uint16)
+    eight[:5] = 255
+    sixteen[:5] = 65535
+    images, folder, opts = _import_masks_setup(tmp_path, {0: eight, 1: sixteen})
+    out = tmp_path / "apple.zarr"
+    message = assert_refused(lambda: _segment(images, opts, out), out, folder / "frame_00000_apple.png",
+                             "mixed bit depth")
+    assert str(folder / "frame_00001_apple.png") in message and "16-bit" in message and "\n" not in message
+
+
+@pytest.mark.hostile
+def test_class_above_its_threshold_nowhere_says_the_value_range_found(tmp_path, caplog):
+    """Soft masks that never reach the threshold: the segment warning and the composite error say
+    the bit depth, the values found and how they were read, not only that no frame holds the class."""
+    from srfpipe.segment.composite import composite_masks
+
+    soft = np.zeros((30, 40), np.uint8)
+    soft[5:15, 10:30] = 100  # 0.39, below the threshold 0.5
+    images, _, opts = _import_masks_setup(tmp_path, {0: soft, 1: soft})
+    with caplog.at_level("WARNING"):
+        _segment(images, opts, tmp_path / "apple.zarr")
+    assert re.search(r"prompt 'apple': no pixel of its masks reaches the threshold 0.50 \(highest probability "
+                     r"0.392; 2 masks, 8-bit, values 0..100, read as probability value/255\)", caplog.text)
+    out = tmp_path / "labels.zarr"
+    message = assert_refused(lambda: composite_masks(images, [tmp_path / "apple.zarr"], {}, out, progress=False),
+                             out, "apple", r"no frame contains any of the classes \['apple'\] \(apple: highest "
+                             r"probability 0.392 \(threshold 0.5\), imported 2 masks, 8-bit, values 0..100")
+    assert "\n" not in message
+
+
+@pytest.mark.hostile
+def test_import_label_images_are_read_as_before(tmp_path):
+    """The value-range pass is for probability masks: a label image's values select classes."""
+    from tests.test_segment import options, red_blue_images, write_images
+    from srfpipe.segment.run import prompt_options
+
+    images = write_images(tmp_path / "images.zarr", red_blue_images(n=2, width=40, height=30))
+    folder = tmp_path / "labels"
+    folder.mkdir()
+    label = np.zeros((30, 40), np.uint16)
+    label[:10] = 1
+    label[10:20] = 300  # a 16-bit label value
+    for i in range(2):
+        cv2.imwrite(str(folder / f"frame_{i:05d}.png"), label)
+    opts = prompt_options(options(backend="import", **{"import": {"path": str(folder), "format": "labels",
+                                                                  "values": {"apple": 300}}}), "apple")
+    masks = _segment(images, opts, tmp_path / "apple.zarr")
+    assert np.array_equal(masks == 1.0, np.broadcast_to(label == 300, masks.shape))
+    from srfpipe.artifacts import meta
+
+    assert "mask_values" not in meta(open_artifact(tmp_path / "apple.zarr"))
+
+
+@pytest.mark.hostile
+@pytest.mark.parametrize("scene, problem", [
+    ({"segmentation": {"prompts": ["apple", "branch", "leaf"]}, "occupancy": {"reach": ["aple"]}},
+     r"occupancy.reach: 'aple' is not a prompt \(segmentation.prompts: apple, branch, leaf\); did you mean 'apple'\?"),
+    ({"segmentation": {"prompts": ["stem", "leaf", "berry"]}, "occupancy": {"avoid": ["stems"], "reach": ["berry"]}},
+     r"occupancy.avoid: 'stems' is not a prompt \(segmentation.prompts: stem, leaf, berry\); did you mean 'stem'\?"),
+    ({"segmentation": {"prompts": ["bottle"]}, "occupancy": {"reach": ["apple"], "avoid": []}},
+     r"occupancy.reach: 'apple' is not a prompt \(segmentation.prompts: bottle\)$"),
+    ({"segmentation": {"prompts": []}, "occupancy": {"reach": ["apple"], "avoid": []}},
+     r"occupancy.reach: 'apple' is not a prompt \(segmentation.prompts is empty"),
+], ids=["reach_typo", "avoid_typo", "unrelated", "no_prompts"])
+def test_occupancy_roles_must_name_prompts(scene, problem):
+    message = assert_refused(lambda: validate_scene(scene, "s.yaml"), None, "s.yaml: occupancy.", problem, ConfigError)
+    assert message.count("\n") == 0
+
+
+@pytest.mark.hostile
+def test_occupancy_roles_of_a_scene_file_are_checked_against_the_default_prompts(tmp_path):
+    from srfpipe.config import load_scene
+
+    path = tmp_path / "s.yaml"
+    path.write_text("occupancy:\n  reach: [aple]\n")
+    assert_refused(lambda: load_scene(path), None, f"{path}: occupancy.reach", "did you mean 'apple'", ConfigError)
+
+
+@pytest.mark.hostile
+def test_default_roles_and_a_section_alone_are_not_checked_against_prompts():
+    from srfpipe.config import load_scene
+    from tests.conftest import REPO
+
+    # the schema's default roles (apple, branch) need not be among a scene's prompts
+    validate_scene({"segmentation": {"prompts": ["bottle"]}}, "s.yaml")
+    validate_scene({"segmentation": {"prompts": []}}, "s.yaml")
+    # a stage validating its section alone does not know the scene's prompts
+    validate_scene({"occupancy": {"reach": ["berry"], "avoid": ["stem"]}}, "occupancy options")
+    for path in sorted((REPO / "config" / "scenes").glob("*.yaml")):
+        load_scene(path)
+
+
+def _tiny_train_scene(tmp_path):
+    from srfpipe.srf.synthetic import write_scene
+
+    return write_scene(tmp_path / "scene", views=6, width=24, height=16)
+
+
+@pytest.mark.hostile
+def test_training_that_diverges_stops_and_writes_nothing(tmp_path):
+    """train.lr 1e6 trained to the end and wrote srf.zarr without a word (its semantic loss reached
+    1e5..1e14 and never became NaN here); now the first logging step that sees a non-finite or
+    exploded loss (or a non-finite parameter) stops it, naming the step, the term and the rate."""
+    from srfpipe.srf.trainer import TrainingDiverged, train
+    from tests.test_train import tiny_options
+
+    images, labels = _tiny_train_scene(tmp_path)
+    out = tmp_path / "srf.zarr"
+    message = assert_refused(
+        lambda: train(images, labels, out, tiny_options(lr=1e6, iterations=40, checkpoint_every=0),
+                      holdout_every=3),
+        out, out, r"training diverged, at step \d+ the [a-z_]+ loss (became NaN or infinite|is \S+, over 1000 times "
+                  r"the loss at step 1 \(\S+\)) \(train.lr 1e\+06\); lower train.lr \(the default is 0.01\); "
+                  r"nothing written$", TrainingDiverged)
+    assert "\n" not in message
+
+
+@pytest.mark.hostile
+def test_a_non_finite_loss_term_is_named_with_its_first_step(tmp_path, monkeypatch):
+    from srfpipe.srf import losses
+    from srfpipe.srf.trainer import TrainingDiverged, train
+    from tests.test_train import tiny_options
+
+    real = losses.total_loss
+    calls = []
+
+    def semantic_goes_nan(*args, **kwargs):
+        parts = real(*args, **kwargs)
+        calls.append(1)
+        if len(calls) == 7:  # step 7: the semantic term alone is NaN
+            parts["semantic"] = parts["semantic"] * float("nan")
+            parts["loss"] = parts["photometric"] + parts["semantic"]
+        return parts
+
+    monkeypatch.setattr(losses, "total_loss", semantic_goes_nan)
+    images, labels = _tiny_train_scene(tmp_path)
+    out = tmp_path / "srf.zarr"
+    assert_refused(lambda: train(images, labels, out, tiny_options(iterations=30, log_every=5, checkpoint_every=0),
+                                 holdout_every=3),
+                   out, out, r"at step 7 the semantic loss became NaN or infinite \(train.lr 0.01\)", TrainingDiverged)
+    assert len(calls) == 10  # stopped at the logging step after it (10), not at the end (30)
+
+
+@pytest.mark.hostile
+@pytest.mark.parametrize("argv, how", [
+    (["downscale", "--poses", "{poses}", "--out", "{poses}"], r"--out \S+poses.zarr is the input --poses"),
+    (["downscale", "--poses", "{poses}", "--out", "{root}/./x/../poses.zarr"], r"--out \S+ is the input --poses"),
+    (["segment", "--images", "{poses}", "--prompt", "apple", "--out", "{poses}/masks/apple.zarr"],
+     r"--out \S+apple.zarr lies inside the input --images \S+poses.zarr"),
+    (["train", "--images", "{poses}", "--labels", "{root}/labels.zarr", "--out", "{root}/srf.zarr",
+      "--metrics-log", "{root}/labels.zarr"], r"--metrics-log \S+labels.zarr is the input --labels"),
+    (["distill", "--srf", "{poses}", "--out", "{root}"], r"--out \S+ holds the input --srf \S+poses.zarr"),
+    (["poses", "--source", '{{"format": "nerfstudio", "path": "{root}/cap"}}', "--out", "{root}/cap"],
+     r"--out \S+cap is the input --source path \S+cap"),
+], ids=["downscale_same", "downscale_dotted", "segment_inside", "train_metrics_log", "distill_holds", "poses_source"])
+def test_stage_cli_refuses_an_output_over_its_input(tmp_path, capsys, argv, how):
+    """`srfpipe downscale --out X --poses X` replaced the poses with images; every stage now refuses
+    an output that is, lies inside or holds one of its inputs, before anything runs."""
+    from srfpipe.cli import main
+
+    root = capture(tmp_path / "cap")
+    poses = import_poses(NERFSTUDIO, root, {}, tmp_path / "poses.zarr", progress=False)
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    code = main([a.format(poses=poses, root=tmp_path) for a in argv])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert re.search(how, err), err
+    assert len(err.strip().splitlines()) == 1 and "writing it would destroy the input" in err
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
+    open_artifact(poses, stage="poses")

@@ -228,7 +228,8 @@ def test_import_png_masks_binary_soft_and_full_resolution(tmp_path):
     truth = np.zeros((2, 30, 40), np.float32)
     truth[0, 5:15, 10:30] = 1.0
     truth[1, 10:25, 0:20] = 0.6
-    cv2.imwrite(str(folder / "frame_00000_apple.png"), truth[0].astype(np.uint8))  # binary 0/1
+    # binary 0/255 (a 0/1 mask beside a soft one would be read as value/255 like it: one scale per prompt)
+    cv2.imwrite(str(folder / "frame_00000_apple.png"), (truth[0] * 255).astype(np.uint8))
     full = cv2.resize((truth[1] * 255).astype(np.uint8), (80, 60), interpolation=cv2.INTER_NEAREST)
     cv2.imwrite(str(folder / "frame_00001_apple.png"), full)  # soft, full resolution
     opts = options(backend="import", **{"import": {"path": str(folder)}})

@@ -137,7 +137,7 @@ def _check_mask_frames(path, shape, names, frames: Frames) -> None:
 def _open_masks(paths: list[str | Path], frames: Frames):
     from srfpipe.artifacts import meta, open_artifact
 
-    arrays, prompts, thresholds = [], [], []
+    arrays, prompts, thresholds, value_ranges = [], [], [], []
     labelled = np.ones(frames.count, dtype=bool)
     for path in paths:
         group = open_artifact(path, stage="segment")
@@ -151,9 +151,10 @@ def _open_masks(paths: list[str | Path], frames: Frames):
         arrays.append(group["probability"])
         prompts.append(info["prompt"])
         thresholds.append(float(info["threshold"]))
+        value_ranges.append(info.get("mask_values"))  # imported masks: bit depth, values, how read
         if info.get("labelled") is not None:  # masks of some frames only (import)
             labelled &= np.asarray(info["labelled"], dtype=bool)
-    return arrays, prompts, thresholds, labelled
+    return arrays, prompts, thresholds, labelled, value_ranges
 
 
 def _probabilities(arrays, index: int, channels) -> np.ndarray:
@@ -161,22 +162,43 @@ def _probabilities(arrays, index: int, channels) -> np.ndarray:
     return np.stack([np.asarray(arrays[k][index]) for k in channels]).astype(np.float32) / 255.0
 
 
-def _kept_classes(arrays, prompts: list[str], t: np.ndarray, options: dict, n: int, progress: bool):
-    """Pass 1: which prompts' classes the scene contains; returns (kept indices, empty prompts)."""
+def _why_empty(prompt: str, highest: float, threshold: float, value_range: dict | None) -> str:
+    """'apple: highest probability 0.39 (threshold 0.5), imported 8-bit masks, values 0..100, ...'."""
+    why = f"{prompt}: highest probability {highest:.3g} (threshold {threshold:g})"
+    if value_range:
+        from srfpipe.segment.import_backend import describe_range
+
+        why += f", imported {describe_range(value_range)}"
+    return why
+
+
+def _kept_classes(arrays, prompts: list[str], t: np.ndarray, options: dict, n: int, progress: bool,
+                  value_ranges: list | None = None):
+    """Pass 1: which prompts' classes the scene contains; returns (kept indices, empty prompts).
+
+    An empty class is reported with the highest probability its masks reach and, for imported
+    masks, the bit depth and value range found (a 16-bit or soft export read on the wrong scale
+    shows there)."""
     from tqdm import tqdm
 
     counts = np.zeros(len(prompts), dtype=np.int64)
+    highest = np.zeros(len(prompts), dtype=np.float32)
     for i in tqdm(range(n), desc="count classes", unit="img", disable=not progress):
-        counts += class_members(_probabilities(arrays, i, range(len(prompts))), t).reshape(len(prompts), -1).sum(axis=1)
+        probs = _probabilities(arrays, i, range(len(prompts))).reshape(len(prompts), -1)
+        counts += class_members(probs, t).sum(axis=1)
+        highest = np.maximum(highest, probs.max(axis=1, initial=0.0))
     min_pixels = int(options.get("min_pixels", 0))
     empty = [p for p, c in zip(prompts, counts) if c <= min_pixels]
     keep_empty = bool(options.get("keep_empty_classes", False))
     kept = [k for k, p in enumerate(prompts) if keep_empty or p not in empty]
+    value_ranges = value_ranges or [None] * len(prompts)
+    why = "; ".join(_why_empty(p, float(highest[k]), float(t[k]), value_ranges[k])
+                    for k, p in enumerate(prompts) if p in empty)
     if empty:
         action = "kept (labels.keep_empty_classes)" if keep_empty else "dropped from the heads"
-        log.warning("classes %s: at most %d pixels in all %d frames, %s", empty, min_pixels, n, action)
+        log.warning("classes %s: at most %d pixels in all %d frames, %s (%s)", empty, min_pixels, n, action, why)
     if not kept:
-        raise ValueError(f"composite: no frame contains any of the classes {prompts}; nothing to learn "
+        raise ValueError(f"composite: no frame contains any of the classes {prompts} ({why}); nothing to learn "
                          "(set labels.keep_empty_classes: true to keep them anyway)")
     return kept, empty
 
@@ -191,13 +213,13 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
 
     options = {**section_defaults("labels"), **options}
     frames = read_frames(images_path)
-    arrays, prompts, thresholds, labelled = _open_masks(list(mask_paths), frames)
+    arrays, prompts, thresholds, labelled, value_ranges = _open_masks(list(mask_paths), frames)
     n, height, width, names = frames.count, frames.height, frames.width, frames.names
     all_values = list(range(1, len(prompts) + 1))
     t = np.asarray(thresholds, dtype=np.float32)
     keep_empty = bool(options.get("keep_empty_classes", False))
     if prompts:
-        kept, empty = _kept_classes(arrays, prompts, t, options, n, progress)
+        kept, empty = _kept_classes(arrays, prompts, t, options, n, progress, value_ranges)
     else:
         kept, empty = [], []
         log.info("no prompts (segmentation.prompts is empty): labels with zero classes for %d frames", n)

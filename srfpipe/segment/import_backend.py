@@ -3,8 +3,13 @@
 Two layouts (`segmentation.import.format`):
 
 * `masks`: one grayscale image per frame and prompt, named by `pattern` (default
-  `{stem}_{prompt}.png`). Binary masks may be 0/255 or 0/1 (an image whose values are all 0 or 1 is
-  read as binary); anything else is a soft probability, value / 255 (8-bit) or / 65535 (16-bit).
+  `{stem}_{prompt}.png`). How values map to probabilities is decided once per prompt, over all its
+  masks (a first pass reads each mask's depth and value range, see `value_range`): when every mask
+  holds only 0 and 1 they are binary 0/1; 8-bit masks are value / 255 (binary 0/255 or soft);
+  16-bit masks whose values all lie in 0..255 are 8-bit masks stored in 16 bits, value / 255;
+  other 16-bit masks are value / 65535. 8- and 16-bit masks mixed in one prompt are refused. A
+  per-frame decision read a soft mask whose maximum is 1 as certain and 16-bit 0/255 masks as
+  nearly empty.
 * `labels`: one label image per frame (default `{stem}.png`); a prompt's mask is the pixels whose
   value is one of `values[prompt]`.
 
@@ -69,19 +74,66 @@ def _fit_size(mask: np.ndarray, path: Path, size: tuple[int, int], downscale: fl
     raise ValueError(f"{path}: mask is {mw}x{mh}, expected {width}x{height} (the size of images.zarr){full}")
 
 
-def _soft(mask: np.ndarray) -> np.ndarray:
-    if mask.max(initial=0) <= 1:
-        return mask.astype(np.float32)  # a 0/1 binary mask
-    scale = 65535.0 if mask.dtype == np.uint16 else 255.0
-    return mask.astype(np.float32) / scale
+def value_range(paths: list[Path], prompt: str) -> dict:
+    """Pass 1 over one prompt's mask files: bit depth and values, and how they are read.
+
+    Returns {"masks", "bits", "min", "max", "binary01", "binary0255", "scale", "read_as"}: every
+    mask of the prompt is divided by `scale` (1: binary 0/1, 255, or 65535). Refuses 8- and 16-bit
+    masks mixed in one prompt, naming one file of each.
+    """
+    first_of: dict[int, Path] = {}
+    low, high, within01, within0255 = None, 0, True, True
+    some01 = None  # a mask holding only 0 and 1 (with others reaching higher: read as nearly empty)
+    for path in paths:
+        raw = _read_single_channel(path)
+        bits = 16 if raw.dtype == np.uint16 else 8
+        first_of.setdefault(bits, path)
+        lo, hi = (int(raw.min()), int(raw.max())) if raw.size else (0, 0)
+        low, high = lo if low is None else min(low, lo), max(high, hi)
+        only01 = hi <= 1
+        within01 &= only01
+        if only01 and hi == 1 and some01 is None:
+            some01 = path
+        if within0255:  # 0/255 binary (a 0/1 mask among them holds a 1 of 255)
+            within0255 = hi == 0 if only01 else bool(np.isin(raw, (0, 255)).all())
+    if len(first_of) > 1:
+        raise ValueError(f"prompt {prompt!r}: masks of mixed bit depth, {first_of[8]} is 8-bit and {first_of[16]} "
+                         "is 16-bit; export every mask of a prompt with the same depth")
+    bits = next(iter(first_of), 8)
+    low = 0 if low is None else low
+    found = {"masks": len(paths), "bits": bits, "min": low, "max": high, "binary01": within01,
+             "binary0255": within0255 and not within01}
+    if within01:
+        found.update(scale=1.0, read_as="binary 0/1")
+    elif bits == 8:
+        found.update(scale=255.0, read_as="probability value/255" + (" (binary 0/255)" if within0255 else ""))
+    elif high <= 255:
+        found.update(scale=255.0, read_as="probability value/255 (8-bit masks stored in 16 bits"
+                     + (", binary 0/255)" if within0255 else ")"))
+    else:
+        found.update(scale=65535.0, read_as="probability value/65535")
+    if not within01 and some01 is not None:
+        log.warning("prompt %r: %s holds only 0 and 1 while other masks of the prompt reach %d: read as "
+                    "value/%d like them (nearly empty), not as a binary mask", prompt, some01, high,
+                    int(found["scale"]))
+    return found
+
+
+def describe_range(found: dict) -> str:
+    """'40 masks, 8-bit, values 0..255, read as probability value/255'."""
+    return (f"{found['masks']} masks, {found['bits']}-bit, values {found['min']}..{found['max']}, "
+            f"read as {found['read_as']}")
 
 
 def import_masks(
-    names: list[str], size: tuple[int, int], prompt: str, options: dict, downscale: float = 1.0
+    names: list[str], size: tuple[int, int], prompt: str, options: dict, downscale: float = 1.0,
+    found: dict | None = None,
 ) -> Iterator[np.ndarray]:
     """Probability maps (H, W) float32 in [0, 1] for `prompt`, one per image name, in order.
 
     A frame whose mask file is missing yields None (unlabelled); all of them missing is an error.
+    `found`, when given, receives the prompt's value range (`value_range`, `masks` layout) before
+    the first map is yielded.
     """
     spec = options.get("import") or {}
     if not spec.get("path"):
@@ -106,6 +158,14 @@ def import_masks(
         # a frame without a mask is unlabelled, not empty: it trains colour and geometry only
         log.warning("prompt %r: %d of %d frames have no mask in %s (unlabelled: %s%s)", prompt, len(missing),
                     len(names), folder, ", ".join(missing[:8]), " ..." if len(missing) > 8 else "")
+    scale = None
+    if layout != "labels":
+        # pass 1: one decision for all the prompt's masks, not one per frame
+        values_found = value_range([path for path in paths if path.is_file()], prompt)
+        scale = values_found["scale"]
+        log.info("prompt %r: %s", prompt, describe_range(values_found))
+        if found is not None:
+            found.update(values_found)
     for path in paths:
         if not path.is_file():
             yield None
@@ -116,4 +176,4 @@ def import_masks(
             probability = np.isin(raw, values).astype(np.float32)
             yield np.clip(_fit_size(probability, path, size, downscale), 0.0, 1.0)
         else:
-            yield np.clip(_fit_size(_soft(raw), path, size, downscale), 0.0, 1.0)
+            yield np.clip(_fit_size(raw.astype(np.float32) / scale, path, size, downscale), 0.0, 1.0)

@@ -64,6 +64,7 @@ def segment_images(images_path: str | Path, prompt: str, options: dict, out: str
 
     frames = (np.asarray(images[i]) for i in range(n))
     backend = options["backend"]
+    mask_values: dict = {}  # the imported masks' bit depth and value range (filled by import_masks)
     if backend == "onnx":
         from srfpipe.segment.onnx_backend import OnnxSegmenter
 
@@ -77,7 +78,7 @@ def segment_images(images_path: str | Path, prompt: str, options: dict, out: str
         from srfpipe.segment.import_backend import import_masks
 
         downscale = float(image_meta.get("downscale", 1) or 1)
-        maps = tqdm(import_masks(names, (width, height), prompt, options, downscale), total=n,
+        maps = tqdm(import_masks(names, (width, height), prompt, options, downscale, found=mask_values), total=n,
                     desc=f"import {prompt}", unit="img", disable=not progress)
         source = {"import": options["import"]}
         inputs = [images_path, options["import"]["path"]]
@@ -89,7 +90,7 @@ def segment_images(images_path: str | Path, prompt: str, options: dict, out: str
             "probability", shape=(n, height, width), chunks=(1, height, width), dtype="uint8",
             dimension_names=("image", "y", "x"), fill_value=0,
         )
-        coverage, labelled = [], []
+        coverage, labelled, highest = [], [], 0.0
         for i, prob in enumerate(maps):
             labelled.append(prob is not None)
             if prob is None:  # no mask for this frame (import): unlabelled, left at the fill value
@@ -100,10 +101,19 @@ def segment_images(images_path: str | Path, prompt: str, options: dict, out: str
                                  f"expected {(height, width)}")
             probability[i] = np.round(np.clip(prob, 0.0, 1.0) * 255.0).astype(np.uint8)
             coverage.append(float(np.mean(prob >= options["threshold"])))
+            highest = max(highest, float(prob.max(initial=0.0)))
+        if mask_values:
+            mask_values["highest_probability"] = highest
+            source["mask_values"] = mask_values
         update_attrs(group, prompt=prompt, threshold=options["threshold"], backend=backend, names=names,
                      width=width, height=height, coverage=coverage, labelled=labelled,
                      unlabelled_frames=[name for name, known in zip(names, labelled) if not known], **source)
     known = [c for c in coverage if c is not None]
+    if mask_values and not any(known):
+        from srfpipe.segment.import_backend import describe_range
+
+        log.warning("prompt %r: no pixel of its masks reaches the threshold %.2f (highest probability %.3g; %s)",
+                    prompt, options["threshold"], highest, describe_range(mask_values))
     log.info("%s: %d masks (%d frames unlabelled), mean coverage %.3f at threshold %.2f", out, len(known),
              n - len(known), float(np.mean(known)), options["threshold"])
     return Path(out)

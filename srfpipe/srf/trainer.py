@@ -379,6 +379,80 @@ def resolve_data_defaults(options: dict, data) -> dict:
     return options
 
 
+class TrainingDiverged(RuntimeError):
+    """A loss term or the model's parameters became NaN or infinite, or a loss term exploded:
+    nothing is written."""
+
+
+# A loss term this many times the run's first loss (at least 0.1) has exploded. A healthy run's loss
+# falls from its first value (photometric <= 3, semantic about 0.7 per class at logits 0); train.lr
+# 1e6 on the tiny test scene gave a semantic loss of 1e5 to 6e14 that never became NaN.
+EXPLODED_FACTOR = 1e3
+
+
+class DivergenceWatch:
+    """Notices a loss term that becomes NaN or infinite, without a host-device sync per step.
+
+    Every step `update` records on the device, per loss term, the first step at which it was not
+    finite (a few tiny kernels, nothing read back); `check`, called where the loop reads the loss
+    to the host anyway (each `log_every` steps, before a checkpoint, at the end), reads those
+    steps, the terms of the latest step and whether every parameter is still finite, and raises
+    TrainingDiverged naming the step, the term and the learning rate. A term above
+    EXPLODED_FACTOR times the run's first loss counts as diverged too.
+    """
+
+    def __init__(self, names: list[str], start_step: int, device):
+        import torch
+
+        self.names = list(names)
+        self.start = start_step + 1
+        self.step = torch.full((), start_step + 1, dtype=torch.int64, device=device)  # the step `update` sees
+        self.first = torch.full((len(self.names),), -1, dtype=torch.int64, device=device)
+        self.initial = None  # the first step's loss (device)
+        self.last = None  # the latest step's terms (device)
+
+    def update(self, terms, loss) -> None:
+        import torch
+
+        self.last = torch.stack([t.detach().float().reshape(()) for t in terms])
+        if self.initial is None:
+            self.initial = loss.detach().float().reshape(1)
+        self.first = torch.where(~torch.isfinite(self.last) & (self.first < 0), self.step, self.first)
+        self.step += 1
+
+    def check(self, done: int, model, lr: float, out) -> None:
+        import math
+
+        import torch
+
+        params_finite = torch.stack([torch.isfinite(p.detach()).all() for p in model.parameters()]).all()
+        found = torch.cat([self.first.double(), self.last.double(), self.initial.double(),
+                           (~params_finite).double().reshape(1)]).tolist()
+        n = len(self.names)
+        first, last, initial, params_bad = found[:n], found[n:2 * n], found[2 * n], bool(found[-1])
+        went = [(int(step), name) for step, name in zip(first, self.names) if step >= 0]
+        limit = EXPLODED_FACTOR * max(initial, 0.1) if math.isfinite(initial) else math.inf
+        exploded = [(value, name) for value, name in zip(last, self.names) if math.isfinite(value) and value > limit]
+        if not went and not params_bad and not exploded:
+            return
+        from srfpipe.config import load_schema
+
+        default = load_schema()["properties"]["train"]["properties"]["lr"].get("default")
+        hint = f"lower train.lr (the default is {default:g})" if default is not None else "lower train.lr"
+        if went:
+            step = min(s for s, _ in went)
+            terms = " and ".join(name for s, name in went if s == step)
+            what = f"at step {step} the {terms} loss became NaN or infinite"
+        elif params_bad:
+            name = next(n for n, p in model.named_parameters() if not bool(torch.isfinite(p.detach()).all()))
+            what = f"by step {done} the parameter {name} became NaN or infinite"
+        else:
+            value, name = max(exploded)
+            what = (f"at step {done} the {name} loss is {value:.3g}, over {EXPLODED_FACTOR:g} times the loss "
+                    f"at step {self.start} ({initial:.3g})")
+        raise TrainingDiverged(f"{out}: training diverged, {what} (train.lr {lr:g}); {hint}; nothing written")
+
+
 class TrainingProgress:
     """The training progress bar. With a time budget the run ends on the clock (usually long
     before `iterations`), so the bar counts training seconds towards the budget and shows the
@@ -522,6 +596,7 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
 
     model.train()
     bar = TrainingProgress(start_step, iterations, train_seconds, time_budget)
+    watch = None
     try:
         for step in range(start_step, iterations):
             tick = time.perf_counter()
@@ -539,17 +614,23 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
                                 box_accumulation=bool(background_opacity and labels_batch is not None))
             valid = None if labelled_frames is None else labelled_frames[image]
             parts = losses.total_loss(outputs["rgb"], rgb, outputs["logits"], labels_batch, lambda_sem, valid)
+            extra = {}  # the weighted regularisers, by name (a divergence names the term)
             if distortion_weight:
-                parts["loss"] = parts["loss"] + distortion_weight * outputs["distortion"]
+                extra["distortion"] = distortion_weight * outputs["distortion"]
             if background_opacity and labels_batch is not None:
-                parts["loss"] = parts["loss"] + background_opacity * losses.background_opacity_loss(
+                extra["background_opacity"] = background_opacity * losses.background_opacity_loss(
                     outputs["box_accumulation"], labels_batch, valid)
             if tv_density and model.field.density_grid:
-                parts["loss"] = parts["loss"] + tv_density * losses.grid_total_variation(
+                extra["tv_density"] = tv_density * losses.grid_total_variation(
                     model.field.inner_sigma, tv_samples, generator)
             if tv_features and model.field.density_grid:
-                parts["loss"] = parts["loss"] + tv_features * losses.grid_total_variation(
+                extra["tv_features"] = tv_features * losses.grid_total_variation(
                     model.field.inner, tv_samples, generator)
+            for term in extra.values():
+                parts["loss"] = parts["loss"] + term
+            if watch is None:
+                watch = DivergenceWatch(["photometric", "semantic", *extra], start_step, device)
+            watch.update([parts["photometric"], parts["semantic"], *extra.values()], parts["loss"])
             optimizer.zero_grad(set_to_none=True)
             if scaler_needed:
                 scaler.scale(parts["loss"]).backward()
@@ -566,6 +647,8 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
                 snapshot_marks = snapshot_marks[len(passed):]
                 save_snapshot(ckpt_dir, done, train_seconds, passed, model, fp)
             if done % log_every == 0 or done == iterations:
+                # the loop reads the loss to the host here anyway: the one place to look for NaN
+                watch.check(done, model, lr, out)
                 photo = float(parts["photometric"].detach())
                 record = {
                     "step": done, "seconds": round(train_seconds, 3), "loss": float(parts["loss"].detach()),
@@ -595,11 +678,14 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
                 iterations_done = done
                 break
             if checkpoint_every and done % checkpoint_every == 0 and done < iterations:
+                watch.check(done, model, lr, out)  # never a checkpoint of a diverged run
                 save_checkpoint(ckpt_dir, {
                     "step": done, "fingerprint": fp, "model": model.state_dict(),
                     "optimizer": optimizer.state_dict(), "train_seconds": train_seconds,
                     "curve": curve, "eval_curve": eval_curve,
                 })
+        if watch is not None:
+            watch.check(iterations_done, model, lr, out)  # a run cut by its time budget between two logs
     finally:
         bar.close()
         if log_file:
