@@ -84,6 +84,7 @@ def render_speed(package: Path, states: list, state_targets: list, n: int) -> di
     import torch
 
     from srfpipe.sim.runtime import Simulator
+    from srfpipe.srf import metrics
 
     picks = np.linspace(0, len(states) - 1, min(n, len(states))).astype(int)
     result = {}
@@ -118,10 +119,9 @@ def render_speed(package: Path, states: list, state_targets: list, n: int) -> di
         elapsed += time.process_time() - started  # CPU seconds of all of torch's threads
         baked = baked_views[list(picks).index(i)]
         mse = float(np.mean((baked["rgb"] - net["rgb"]) ** 2))
-        psnr.append(-10 * np.log10(max(mse, 1e-10)))
+        psnr.append(metrics.psnr_from_mse(mse))
         if net["semantic"].shape[-1]:
-            def label(s):
-                return np.where(s.max(-1) >= 0.5, s.argmax(-1) + 1, 0)
+            label = metrics.label_from_probabilities
             agree.append(float(np.mean(label(baked["semantic"]) == label(net["semantic"]))))
     result["render_hz_network"] = len(few) / elapsed  # per CPU second (2 torch threads): an upper bound on idle cores
     result["baked_vs_network_psnr"] = float(np.mean(psnr))

@@ -130,9 +130,6 @@ GENERALIZATION_GAP_DB = 6.0
 # training views rendered for the generalization check when evaluate.train_views is not given
 DEFAULT_TRAIN_VIEWS = 3
 
-# the held-out psnr's floor on the mean squared error (1e-12: 120 dB for a perfect render)
-_MSE_FLOOR = 1e-12
-
 
 def train_view_choice(train: np.ndarray, count: int) -> np.ndarray:
     """`count` of the training views `train`, evenly spaced (the centres of `count` equal parts of
@@ -146,12 +143,11 @@ def train_view_choice(train: np.ndarray, count: int) -> np.ndarray:
 
 def pooled_psnr(renders: list[np.ndarray], targets: list[np.ndarray]) -> float:
     """PSNR over all pixels of all `renders` against their `targets` (one mean squared error, like
-    the held-out `psnr`, with its 1e-12 floor), via srfpipe.srf.metrics.psnr."""
+    the held-out `psnr`, with the same floor), via srfpipe.srf.metrics.psnr."""
     from srfpipe.srf import metrics
 
-    value = metrics.psnr(np.concatenate([r.reshape(-1, 3) for r in renders]),
-                         np.concatenate([t.reshape(-1, 3) for t in targets]))
-    return min(value, -10 * np.log10(_MSE_FLOOR))
+    return metrics.psnr(np.concatenate([r.reshape(-1, 3) for r in renders]),
+                        np.concatenate([t.reshape(-1, 3) for t in targets]))
 
 
 def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) -> dict:
@@ -236,7 +232,7 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
         n_values = len(heldout) * data.height * data.width * 3
         result = {
             "views": len(heldout), "holdout_every": holdout, "supersample": supersample, "classes": list(data.classes),
-            "psnr": -10 * np.log10(max(sq_err / n_values, 1e-12)),
+            "psnr": metrics.psnr_from_mse(sq_err / n_values),
             "ssim": float(np.mean([v["ssim"] for v in per_view])),
         }
         # the generalization check: the same renders of a few training views (numbers only)
@@ -263,8 +259,7 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
             result["samples_per_ray"] = kept / rays
             result["candidate_samples_per_ray"] = candidates / rays
         if semantic:
-            result["psnr_object"] = (-10 * np.log10(max(sq_err_obj / max(obj_pixels * 3, 1), 1e-12))
-                                     if obj_pixels else None)
+            result["psnr_object"] = metrics.psnr_from_mse(sq_err_obj / (obj_pixels * 3)) if obj_pixels else None
             result.update(_iou_metrics(conf, ["background"] + data.classes, ""))
             if conf_gt is not None:
                 result.update(_iou_metrics(conf_gt, ["background"] + data.classes, "_gt"))

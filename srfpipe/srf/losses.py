@@ -110,10 +110,3 @@ def grid_total_variation(encoding, samples: int | None = None,
     # a hashed level's rows are not neighbours in space
     grids = [m for m in encoding.modules() if isinstance(m, DenseGrid) and not m.hashed]
     return sum(total_variation(g.table, g.resolution, samples, generator) for g in grids)
-
-
-def psnr_from_mse(mse: float) -> float:
-    """PSNR in dB of images in [0, 1] (per-channel MSE)."""
-    import math
-
-    return float("inf") if mse <= 0 else -10.0 * math.log10(mse)

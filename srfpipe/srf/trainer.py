@@ -22,7 +22,6 @@ import errno
 import hashlib
 import json
 import logging
-import math
 import shutil
 import time
 from pathlib import Path
@@ -276,7 +275,7 @@ def quick_eval(model, data, views, device, max_views: int = 4) -> dict:
             gt = remap_ground_truth(data.gt_label[index], data.gt_classes, data.classes)
             m = metrics.confusion(pred, gt, c + 1)
             conf_gt = m if conf_gt is None else conf_gt + m
-    result = {"psnr": -10.0 * math.log10(max(float(np.mean(mses)), 1e-12))}
+    result = {"psnr": metrics.psnr_from_mse(np.mean(mses))}
     if conf is not None:
         result["miou"] = float(np.nanmean(metrics.iou_from_confusion(conf)))
     if conf_gt is not None:
@@ -498,7 +497,7 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
 
     from srfpipe.artifacts import read_provenance
     from srfpipe.device import choose_device, keep_freed_memory, rand
-    from srfpipe.srf import io, losses
+    from srfpipe.srf import io, losses, metrics
     from srfpipe.srf.data import load_posed_images, split_views
     from srfpipe.srf.model import SRFModel, build_model_config, scene_scale
 
@@ -653,7 +652,7 @@ def train(images, labels, out, options: dict, holdout_every: int = 8, checkpoint
                 record = {
                     "step": done, "seconds": round(train_seconds, 3), "loss": float(parts["loss"].detach()),
                     "photometric": photo, "semantic": float(parts["semantic"].detach()),
-                    "psnr": losses.psnr_from_mse(photo / 3.0),
+                    "psnr": metrics.psnr_from_mse(photo / 3.0),
                     "samples_per_ray": outputs["samples"] / batch,
                     "shaded_per_ray": outputs.get("shaded", outputs["samples"]) / batch,
                     "occupied": model.occupancy.occupied_fraction(),
