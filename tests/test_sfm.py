@@ -91,6 +91,28 @@ def test_video_is_posed_through_its_chosen_frames(orbit, tmp_path):
     print(f"\nvideo: {result}")
 
 
+def test_retrieval_finds_the_neighbouring_views(orbit):
+    """The bag of words clustered from the capture's own SIFT features: each view of the turn is most
+    like a view next to it (what the retrieval matcher and a video's loop closure rely on)."""
+    from srfpipe.poses.sfm import bag_of_words, retrieval_pairs
+
+    root, truth, _ = orbit
+    sift = cv2.SIFT_create()
+    descriptors = []
+    for i in range(len(truth)):
+        _, d = sift.detectAndCompute(cv2.imread(str(root / "images" / f"frame_{i:05d}.png"), cv2.IMREAD_GRAYSCALE), None)
+        descriptors.append((512 * d / np.linalg.norm(d, axis=1, keepdims=True)).clip(0, 255).astype(np.uint8))
+    histograms = bag_of_words(descriptors)
+    similarity = histograms @ histograms.T
+    np.fill_diagonal(similarity, -1.0)
+    n = len(truth)
+    steps = np.abs(similarity.argmax(1) - np.arange(n))
+    steps = np.minimum(steps, n - steps)  # round the turn
+    assert np.mean(steps <= 2) >= 0.8, steps
+    # beyond a video's overlap: only pairs at least 11 frames apart
+    assert all(j - i >= 11 for i, j in retrieval_pairs(histograms, 5, min_index_distance=11))
+
+
 def _textured(rng, width=160, height=120) -> np.ndarray:
     small = rng.uniform(0, 255, (height // 8, width // 8, 3)).astype(np.float32)
     return cv2.resize(small, (width, height), interpolation=cv2.INTER_CUBIC).clip(0, 255).astype(np.uint8)
