@@ -31,6 +31,22 @@ def opencv_to_opengl(camera_to_world: np.ndarray) -> np.ndarray:
     return np.asarray(camera_to_world, dtype=np.float64) @ OPENGL_TO_OPENCV
 
 
+def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """camera_to_world (4x4, OpenCV camera: +x right, +y down, +z forward) at `eye` looking at `target`;
+    a ValueError when the viewing direction is parallel to `up`."""
+    eye = np.asarray(eye, np.float64)
+    forward = np.asarray(target, np.float64) - eye
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, np.asarray(up, np.float64))
+    if np.linalg.norm(right) < 1e-9:
+        raise ValueError(f"look_at: viewing direction {forward} is parallel to up {up}")
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    pose = np.eye(4)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, down, forward, eye
+    return pose
+
+
 def intrinsic_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     """K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]."""
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])

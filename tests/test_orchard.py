@@ -172,7 +172,8 @@ def test_class_colours_are_plausible(tiny):
 
 
 def test_views_on_rings_look_at_the_tree():
-    from srfpipe.scenes.orchard import look_at, ring_poses
+    from srfpipe.cameras import look_at
+    from srfpipe.scenes.orchard import ring_poses
 
     target = np.array([0.0, 0.0, 1.4])
     poses = ring_poses(7, [0.9, 2.2], 3.5, target, np.random.default_rng(0))
@@ -205,7 +206,8 @@ def test_scene_without_apples_or_leaves(tmp_path):
 
 def test_chunked_rendering_matches_whole_image(monkeypatch):
     from srfpipe.scenes import raycast
-    from srfpipe.scenes.orchard import intrinsics_for, look_at, sun_direction
+    from srfpipe.cameras import look_at
+    from srfpipe.scenes.orchard import intrinsics_for, sun_direction
     from srfpipe.scenes.tree import build_tree
 
     sun = sun_direction(np.random.default_rng(1))

@@ -17,12 +17,12 @@ import pytest
 import torch
 
 from srfpipe.artifacts import create_artifact, meta, open_artifact
-from srfpipe.cameras import project_points, scene_from_world_transform, transform_poses
+from srfpipe.cameras import look_at, project_points, scene_from_world_transform, transform_poses
 from srfpipe.config import section_defaults
 from srfpipe.srf import losses, rendering
 from srfpipe.srf.data import image_rays, load_posed_images
 from srfpipe.srf.model import MAX_STEPS_ACROSS_BOX, SRFModel, build_model_config
-from srfpipe.srf.synthetic import look_at, write_labels, write_scene
+from srfpipe.srf.synthetic import write_labels, write_scene
 from srfpipe.srf.trainer import train
 from test_train import tiny_options as quick_training
 

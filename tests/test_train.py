@@ -147,7 +147,7 @@ def test_srf_zarr_round_trip_and_query_api(trained):
     assert srf.scene_from_world.shape == (4, 4) and srf.bounds_world.shape == (2, 3)
     curve = read_curve(trained)
     assert len(curve["step"]) > 0 and np.all(np.isfinite(curve["loss"]))
-    from srfpipe.srf.synthetic import look_at
+    from srfpipe.cameras import look_at
 
     pose = look_at((2.0, 0.5, 0.8), (0.0, 0.0, 0.35))
     out = srf.render(pose, [30.0, 30.0, 16.0, 12.0], 32, 24)
@@ -169,7 +169,7 @@ def test_srf_zarr_round_trip_and_query_api(trained):
 def test_supersampled_render_is_the_area_mean_of_the_finer_render(trained):
     # a pixel integrates the light over its footprint: with supersample s, each pixel is the mean of
     # the s x s pixels of the same camera rendered s times finer (a downscaled image's area average)
-    from srfpipe.srf.synthetic import look_at
+    from srfpipe.cameras import look_at
 
     srf = SemanticRadianceField.load(trained, device="cpu")
     pose, k = look_at((2.0, 0.5, 0.8), (0.0, 0.0, 0.35)), np.array([30.0, 30.0, 16.0, 12.0])

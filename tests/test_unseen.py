@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 import torch
 
+from srfpipe.cameras import look_at
 from srfpipe.srf.data import image_rays
 from srfpipe.srf.sampling import OccupancyGrid, spheres_in_view
-from srfpipe.srf.synthetic import look_at
 
 WIDTH, HEIGHT = 40, 30
 INTRINSICS = torch.tensor([[36.0, 36.0, 20.0, 15.0]])

@@ -20,27 +20,13 @@ from pathlib import Path
 import numpy as np
 
 from srfpipe.artifacts import atomic_directory
+from srfpipe.cameras import look_at
 
 CAMERA_CONVENTION = "camera_to_world below is OpenCV (+x right, +y down, +z forward)"
 VIDEO_FILE = "video.avi"  # write_capture(video_fps=...): the views as one video
 
 
 # ----------------------------------------------------------------------------- cameras
-
-
-def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """camera_to_world (4x4, OpenCV camera: +x right, +y down, +z forward) at `eye` looking at `target`."""
-    eye = np.asarray(eye, np.float64)
-    forward = np.asarray(target, np.float64) - eye
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, np.asarray(up, np.float64))
-    if np.linalg.norm(right) < 1e-9:
-        raise ValueError(f"look_at: viewing direction {forward} is parallel to up {up}")
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    pose = np.eye(4)
-    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, down, forward, eye
-    return pose
 
 
 def ring_poses(

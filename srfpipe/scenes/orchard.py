@@ -30,9 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from srfpipe.config import stage_options, validate_scene
-from srfpipe.scenes.capture import (  # noqa: F401 (look_at: imported from here by callers)
-    add_generator_arguments, intrinsics_for, look_at, orbit_poses, ring_poses, write_capture,
-)
+from srfpipe.scenes.capture import add_generator_arguments, intrinsics_for, orbit_poses, ring_poses, write_capture
 from srfpipe.scenes.raycast import light_direction
 
 log = logging.getLogger(__name__)

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from srfpipe.artifacts import create_artifact
-from srfpipe.cameras import pixel_rays, scene_from_world_transform
+from srfpipe.cameras import look_at, pixel_rays, scene_from_world_transform
 
 CLASSES = ["apple", "branch", "leaf"]
 # centre (x, y, z), radius, class value, base colour
@@ -22,19 +22,6 @@ SPHERES = [
     ((-0.3, -0.25, 0.3), 0.10, 1, (0.90, 0.60, 0.10)),
     ((0.05, -0.05, 0.05), 0.08, 2, (0.45, 0.30, 0.15)),
 ]
-
-
-def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """camera_to_world (OpenCV: +z forward, +y down) looking from eye at target."""
-    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
-    forward = target - eye
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, up)
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    pose = np.eye(4)
-    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, down, forward, eye
-    return pose
 
 
 def render(origins, directions):
