@@ -323,22 +323,56 @@ def integrity_check_seconds_per_gb(megabytes: int = 512, parent: Path | None = N
     return result
 
 
+# The hostile-input corpus (`pytest -m hostile`): each case's class, from its test's name.
+HOSTILE_CLASSES = {
+    "injection": ("substitution", "escape_results", "injection"),
+    "corruption": ("corrupt", "damaged", "flipped", "deleted", "truncated", "stray", "missing_chunk"),
+}
+
+
+def hostile_corpus(parent: Path) -> dict:
+    """Every `hostile` test case: tried, handled (a clear error or correct handling), and per class."""
+    report = parent / "hostile.xml"
+    subprocess.run([sys.executable, "-m", "pytest", "-q", "-m", "hostile", "-p", "no:cacheprovider",
+                    f"--junitxml={report}", str(common.REPO / "tests")], cwd=common.REPO, env=common.snakemake_env())
+    cases = [c for c in ET.parse(report).getroot().iter("testcase") if c.find("skipped") is None]
+    failed = {f"{c.get('classname')}::{c.get('name')}" for c in cases
+              if c.find("failure") is not None or c.find("error") is not None}
+    names = [f"{c.get('classname')}::{c.get('name')}" for c in cases]
+    per_class = {}
+    for kind, words in HOSTILE_CLASSES.items():
+        members = [n for n in names if any(w in n.split("::")[-1] for w in words)]
+        per_class[kind] = {"tried": len(members), "handled": sum(1 for n in members if n not in failed)}
+    return {"tried": len(cases), "clear_error": len(cases) - len(failed), "failed": sorted(failed),
+            "per_class": per_class, "cases": names}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="fewer training steps (writes reliability_quick.json)")
     parser.add_argument("--workdir", type=Path, default=None, help="work folder (default: a temporary one)")
     parser.add_argument("--skip-corpus", action="store_true", help="do not run the bad-input corpus")
+    parser.add_argument("--corpus-only", action="store_true",
+                        help="run the bad-input and hostile corpora only; keep the last run's fault results")
     args = parser.parse_args()
     parent = args.workdir or Path(tempfile.mkdtemp(prefix="srfpipe-reliability-"))
     parent.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
 
-    faults = kill_every_stage(parent, args.quick)
-    faults.append(kill_snakemake_too(parent, args.quick))
-    faults += disk_faults(parent, args.quick)
-    concurrent, determinism = concurrent_and_determinism(parent, args.quick)
-    faults.append(concurrent)
+    previous_file = common.result_path("reliability", args.quick)
+    if args.corpus_only:  # the fault runs take most of an hour: keep the last ones
+        previous = json.loads(previous_file.read_text())
+        faults, determinism = previous["faults"], previous["determinism"]
+    else:
+        faults = kill_every_stage(parent, args.quick)
+        faults.append(kill_snakemake_too(parent, args.quick))
+        faults += disk_faults(parent, args.quick)
+        concurrent, determinism = concurrent_and_determinism(parent, args.quick)
+        faults.append(concurrent)
     corpus = bad_input_corpus(parent) if not args.skip_corpus else {"tried": 0, "clear_error": 0}
+    hostile = hostile_corpus(parent) if not args.skip_corpus else {"tried": 0, "clear_error": 0, "per_class": {}}
+    injection = hostile["per_class"].get("injection", {"tried": 0, "handled": 0})
+    corruption = hostile["per_class"].get("corruption", {"tried": 0, "handled": 0})
     integrity = integrity_check_seconds_per_gb(parent=parent)
 
     injected = [f for f in faults if f["injected"]]
@@ -347,6 +381,12 @@ def main() -> int:
         "faults_survived": sum(1 for f in injected if f["survived"]),
         "bad_inputs_tried": corpus["tried"],
         "bad_inputs_clear_error": corpus["clear_error"],
+        "hostile_inputs_tried": hostile["tried"],
+        "hostile_inputs_clear_error": hostile["clear_error"],
+        "injections_tried": injection["tried"],
+        "injections_blocked": injection["handled"],
+        "corruptions_tried": corruption["tried"],
+        "corruptions_detected": corruption["handled"],
         "artifacts_lost": sum(len(f.get("lost", [])) for f in faults),
         "partial_artifacts_left": sum(len(f.get("leftovers", [])) for f in faults),
         "integrity_check_seconds_per_gb": integrity["seconds_per_gb"],
@@ -354,6 +394,8 @@ def main() -> int:
         "faults": faults,
         "determinism": determinism,
         "bad_inputs": corpus,
+        "hostile_inputs": hostile,
+        "faults_from_an_earlier_run": bool(args.corpus_only),
         "seconds": round(time.perf_counter() - started, 1),
         "machine": common.machine_info(),
         "reproduce": "python benchmarks/reliability.py" + (" --quick" if args.quick else ""),

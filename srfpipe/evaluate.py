@@ -167,8 +167,7 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
 
     from srfpipe.artifacts import atomic_directory, meta, open_artifact
     from srfpipe.srf import metrics
-    from srfpipe.srf.data import split_views
-    from srfpipe.srf.trainer import remap_ground_truth
+    from srfpipe.srf.data import remap_ground_truth, split_views
 
     out = Path(out)
     if data.label is None:

@@ -151,16 +151,60 @@ def check_jpeg_complete(path: Path) -> None:
         raise ValueError(f"{path}: truncated JPEG (the file ends inside its image data, no end-of-image marker)")
 
 
+# An image above this many pixels is refused before decoding (a 100-megapixel camera's frames
+# have about 1e8): a header can claim any size, and a decoded frame of 6e4 x 6e4 px holds 10 GB.
+MAX_DECODE_PIXELS = 250_000_000
+
+
+def image_header_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) of an image file upright (EXIF orientation applied), from its header alone
+    (Pillow reads no pixels to open a file); None for a format Pillow does not know (OpenCV may)."""
+    from PIL import Image, UnidentifiedImageError
+
+    limit, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None  # check_decodable judges the size
+    try:
+        with Image.open(path) as image:
+            width, height = image.size
+            # the EXIF block found while reading the header (JPEG's APP1, a PNG eXIf before its
+            # pixels); Image.getexif would decode a PNG whole to look for one after them
+            orientation = exif_orientation(image.info.get("exif") or b"")
+    except UnidentifiedImageError:
+        return None
+    except (OSError, SyntaxError, ValueError) as exc:  # a damaged header
+        raise ValueError(f"{path}: corrupt image header ({exc})") from None
+    finally:
+        Image.MAX_IMAGE_PIXELS = limit
+    return (height, width) if orientation in (5, 6, 7, 8) else (width, height)
+
+
+def check_decodable(path: Path, size: tuple[int, int] | None) -> None:
+    """Refuse, before decoding, an image whose header claims more pixels than a frame may hold."""
+    from srfpipe.memory import check_allocation
+
+    if size is None:
+        return
+    width, height = size
+    if width * height > MAX_DECODE_PIXELS:
+        raise ValueError(f"{path}: its header claims {width} x {height} pixels, more than the "
+                         f"{MAX_DECODE_PIXELS / 1e6:.0f} megapixels an image may have here (corrupt, or not a photo)")
+    check_allocation(width * height * 4 * 2, f"{path}", f"decoding a {width} x {height} image")
+
+
 def read_image(path: Path) -> np.ndarray:
     """An image file decoded as stored (bit depth, grey and alpha kept) and turned upright by its
-    EXIF orientation: the one decoder for pixels (`read_rgb`) and for image sizes at pose import."""
+    EXIF orientation: the one decoder for pixels (`read_rgb`); its header is checked first."""
     import cv2
 
     if not path.is_file():
         raise FileNotFoundError(f"{path}: image does not exist")
+    check_decodable(path, image_header_size(path))
     # IMREAD_UNCHANGED keeps alpha and 16 bits but ignores the EXIF orientation (OpenCV applies
     # it only to converted reads, which drop alpha), so the tag is read and applied here.
-    image, kinds, blocks = cv2.imreadWithMetadata(str(path), cv2.IMREAD_UNCHANGED)
+    try:
+        image, kinds, blocks = cv2.imreadWithMetadata(str(path), cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        reason = str(exc).strip().splitlines()[-1] if str(exc).strip() else "unknown error"
+        raise ValueError(f"{path}: corrupt or unreadable image (OpenCV: {reason})") from None
     if image is None or image.size == 0:
         raise ValueError(f"{path}: corrupt or unreadable image (OpenCV could not decode it)")
     check_jpeg_complete(path)

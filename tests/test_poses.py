@@ -432,7 +432,7 @@ def test_cli_reports_bad_input_in_one_line(tmp_path, capsys):
 
 # Each module of srfpipe/poses may import only modules before it: the importers and the bounds build
 # on `capture`, the refinement on `align`, and only the stage ties everything together.
-POSES_MODULE_ORDER = ["capture", "bounds", "align", "nerfstudio", "blender", "colmap", "llff", "ground_truth",
+POSES_MODULE_ORDER = ["geometry", "capture", "bounds", "align", "nerfstudio", "blender", "colmap", "llff", "ground_truth",
                       "colmap_refine", "video", "sfm", "stage"]
 
 

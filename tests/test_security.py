@@ -157,6 +157,7 @@ def test_training_and_segmentation_open_no_listening_socket(tmp_path):
 
 @pytest.mark.workflow
 @pytest.mark.bad_input
+@pytest.mark.hostile
 def test_capture_path_with_spaces_quotes_and_substitution_runs_no_shell(workflow):
     """A capture folder named `cap $(touch PWNED) 'q"` builds its poses: every path in every rule is
     quoted, so the shell runs no substitution and splits no argument."""
@@ -173,6 +174,7 @@ def test_capture_path_with_spaces_quotes_and_substitution_runs_no_shell(workflow
 
 @pytest.mark.workflow
 @pytest.mark.bad_input
+@pytest.mark.hostile
 @pytest.mark.parametrize("name", ["..", "x;touch PWNED;y", "a.b", "c++"])
 def test_scene_names_that_could_escape_results_are_refused(workflow, name):
     from tests.conftest import TINY_ORCHARD

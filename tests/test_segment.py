@@ -13,7 +13,7 @@ import numpy as np
 import zarr
 import pytest
 
-from srfpipe.artifacts import create_artifact, meta, open_artifact
+from srfpipe.artifacts import create_artifact, meta, open_artifact, reseal_artifact
 from srfpipe.config import validate_scene
 from srfpipe.segment.composite import composite_masks, label_image
 from srfpipe.segment.run import prompt_options, segment_images
@@ -313,6 +313,7 @@ def test_frames_without_a_mask_are_unlabelled_not_empty(tmp_path):
     group.create_array("camera_to_world", data=np.tile(np.eye(4), (4, 1, 1)))
     group.attrs["srfpipe"] = {**group.attrs["srfpipe"], "bounds_world": [[-1, -1, 1], [1, 1, 3]],
                               "scene_from_world": np.eye(4).tolist()}
+    reseal_artifact(images)  # a deliberate edit of a finished artifact
     data = load_posed_images(images, out)
     assert data.labelled.tolist() == [True, False, True, False]
 

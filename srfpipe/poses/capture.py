@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from srfpipe import cameras
-from srfpipe.images import read_image
+from srfpipe.images import check_decodable, image_header_size, read_image
+from srfpipe.poses.geometry import check_camera_model, check_camera_spread
 
 log = logging.getLogger(__name__)
 
@@ -131,12 +132,14 @@ def check_image_file(path: Path, referenced_from: Path | str) -> None:
 
 def read_image_size(path: Path, referenced_from: Path | str) -> tuple[int, int]:
     """(width, height) of an image file upright (EXIF orientation applied), for Blender captures
-    and nerfstudio frames without w/h.
-
-    Decoded by the same function as the downscale stage's pixels (`srfpipe.images.read_image`), so
-    the camera's size is the size of the pixels it is applied to.
-    """
+    and nerfstudio frames without w/h: from its header, never decoding its pixels (a format whose
+    header Pillow cannot read is decoded by `srfpipe.images.read_image`, the downscale stage's
+    decoder, so the camera's size is the size of the pixels it is applied to)."""
     check_image_file(path, referenced_from)
+    size = image_header_size(path)
+    if size is not None:
+        check_decodable(path, size)
+        return size
     height, width = read_image(path).shape[:2]
     return int(width), int(height)
 
@@ -207,3 +210,5 @@ def validate_capture(capture: Capture) -> None:
             raise ValueError(f"{where}: invalid image size {capture.image_size[i].tolist()}")
         if not np.all(np.isfinite(capture.distortion[i])):
             raise ValueError(f"{where}: distortion contains NaN or infinite values")
+        check_camera_model(capture.intrinsics[i], capture.distortion[i], capture.image_size[i], where)
+    check_camera_spread(capture.camera_to_world, capture.source_file)

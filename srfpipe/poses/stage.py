@@ -25,6 +25,7 @@ from srfpipe.poses.bounds import resolve_bounds
 from srfpipe.poses.capture import Capture, validate_capture
 from srfpipe.poses.colmap import read_colmap
 from srfpipe.poses.colmap_refine import refine_poses
+from srfpipe.poses.geometry import check_cameras_see_bounds, check_scene_bounds
 from srfpipe.poses.ground_truth import attach_ground_truth
 from srfpipe.poses.llff import read_llff
 from srfpipe.poses.nerfstudio import read_nerfstudio
@@ -143,6 +144,9 @@ def import_poses(source: dict, capture_dir: str | Path | None, options: dict, ou
         if bounds_source in ("points", "frusta"):
             bounds, bounds_source = resolve_bounds(capture, poses, points, None)
 
+    check_scene_bounds(bounds, capture.source_file, bounds_source)
+    blind_cameras = check_cameras_see_bounds(poses, capture.intrinsics, capture.image_size, bounds, capture.names,
+                                             capture.source_file, bounds_source)
     scene_from_world = cameras.scene_from_world_transform(bounds[0], bounds[1])
     config = {"source": source, "poses": options}
     inputs = [str(Path(capture.root).resolve())]
@@ -171,6 +175,7 @@ def import_poses(source: dict, capture_dir: str | Path | None, options: dict, ou
             ground_truth=str(capture.ground_truth) if capture.ground_truth else None,
             perturbed=perturbed,
             refinement=refinement,
+            cameras_seeing_no_bounds=blind_cameras,
             up_rotation=up_rotation,
             **capture.extra,
         )

@@ -61,6 +61,19 @@ def split_views(count: int, holdout_every: int) -> tuple[np.ndarray, np.ndarray]
     return index[~held_out], index[held_out]
 
 
+def remap_ground_truth(gt: np.ndarray, gt_classes: list[str], classes: list[str]) -> np.ndarray:
+    """Ground-truth label image in the trained class order (1 + index in `classes`, 0 otherwise).
+
+    `gt` holds values that index `gt_classes` (PosedImages.gt_label / gt_classes); the trainer's
+    held-out check and the evaluation both score against this.
+    """
+    lookup = np.zeros(256, dtype=np.uint8)
+    for value, name in enumerate(gt_classes):
+        if name in classes:
+            lookup[value] = classes.index(name) + 1
+    return lookup[gt]
+
+
 def _check_matrix(value, name: str, path: Path) -> np.ndarray:
     matrix = np.asarray(value, dtype=np.float64)
     if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):

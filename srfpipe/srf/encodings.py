@@ -114,6 +114,7 @@ class DenseGrid(nn.Module):
         self.register_buffer("_res", torch.tensor(self.resolution, dtype=torch.float32), persistent=False)
         self.register_buffer("_strides", torch.tensor([ry * rz, rz, 1], dtype=torch.long), persistent=False)
         self.register_buffer("_corner_offsets", _CORNERS @ self._strides, persistent=False)
+        self.register_buffer("_corners", _CORNERS.clone(), persistent=False)  # on the grid's device: no copy a call
 
     @property
     def output_dim(self) -> int:
@@ -128,7 +129,7 @@ class DenseGrid(nn.Module):
         origin = torch.minimum(pos.floor(), self._res - 2.0)
         frac = pos - origin
         if self.hashed:
-            corners = origin.long().unsqueeze(1) + _CORNERS.to(u.device)  # (M, 8, 3)
+            corners = origin.long().unsqueeze(1) + self._corners  # (M, 8, 3)
             index = spatial_hash(corners) & (self.table.shape[0] - 1)
         else:
             base = (origin.long() * self._strides).sum(dim=-1)  # (M,)
@@ -224,6 +225,7 @@ class HashGrid(nn.Module):
         )
         self.register_buffer("_res", torch.tensor(resolutions, dtype=torch.float32), persistent=False)
         self.register_buffer("_dense", torch.tensor(dense), persistent=False)
+        self.register_buffer("_corners", _CORNERS.clone(), persistent=False)
         self.register_buffer(
             "_offsets", torch.arange(self.levels, dtype=torch.long) * table_size, persistent=False
         )
@@ -248,8 +250,7 @@ class HashGrid(nn.Module):
         upper = (self._res - 1.0).view(1, -1, 1)
         origin = torch.minimum(pos.floor().clamp_min(0), upper)
         frac = (pos - origin).clamp(0.0, 1.0)
-        c = _CORNERS.to(u.device)
-        corners = origin.long().unsqueeze(2) + c  # (M, L, 8, 3)
+        corners = origin.long().unsqueeze(2) + self._corners  # (M, L, 8, 3)
         weights = _axis_weights(frac)  # (M, L, 8)
         side = self._res.long().view(1, -1, 1) + 1  # vertices per axis
         dense_index = corners[..., 0] * side * side + corners[..., 1] * side + corners[..., 2]

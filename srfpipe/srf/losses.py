@@ -64,9 +64,9 @@ def background_opacity_loss(box_accumulation: torch.Tensor, labels: torch.Tensor
     background = labels.sum(dim=-1) == 0
     if valid is not None:
         background = background & valid
-    if not bool(background.any()):
-        return box_accumulation.sum() * 0.0
-    return box_accumulation.float()[background].mean()
+    # a masked mean, not a boolean index: no host sync on CUDA; 0 when no ray shows background
+    weight = background.float()
+    return (box_accumulation.float() * weight).sum() / weight.sum().clamp_min(1.0)
 
 
 def total_variation(table: torch.Tensor, resolution, samples: int | None = None,

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
+from srfpipe.memory import check_allocation
 from srfpipe.srf import rendering
 from srfpipe.srf.field import SemanticField, grid_resolution
 from srfpipe.srf.sampling import OccupancyGrid, SamplerSettings, generate_intervals, pack
@@ -44,6 +45,25 @@ def default_encoding(device) -> str:
     stays available (`train.encoding: hash`), as the paper's preset uses it.
     """
     return "dense"
+
+
+TRAINING_COPIES = 4  # a trained table lives as weights, gradients and Adam's two moments
+
+
+def grid_bytes(inner: dict, outer: dict | None, density_grid: bool) -> float:
+    """Bytes of the float32 tables an encoding config allocates (dense levels shrink by 2 per axis)."""
+    total = 0.0
+    for grid in (inner, outer):
+        if not grid:
+            continue
+        if grid["type"] == "hash":
+            total += grid["levels"] * 2 ** grid["log2_table_size"] * grid["features_per_level"] * 4
+            continue
+        cells = sum(float(np.prod([max(int(r) >> level, 2) for r in grid["resolution"]]))
+                    for level in range(int(grid.get("levels", 1))))
+        total += cells * (grid["features"] + int(density_grid)) * 4
+        total += int(grid.get("fine_levels", 0)) * 2 ** int(grid.get("log2_table_size", 22)) * grid["features"] * 4
+    return total
 
 
 def build_model_config(options: dict, bounds_world, scene_from_world, classes: list[str],
@@ -109,6 +129,10 @@ def build_model_config(options: dict, bounds_world, scene_from_world, classes: l
     else:
         raise ValueError(f"train.encoding must be auto, dense or hash, got {encoding!r}")
     density_grid = bool(options.get("density_grid", encoding == "dense"))
+    check_allocation(TRAINING_COPIES * grid_bytes(inner, outer, density_grid),
+                     "train.detail_size" if detail_world is not None else "train.max_resolution",
+                     f"a {' x '.join(map(str, resolution))} grid of {features} features (weights, gradients and "
+                     f"Adam's two moments)", device)
     step = detail_scene * float(options.get("step_ratio", 1.0))
     diagonal = float(np.linalg.norm(extent))
     if diagonal / step > MAX_STEPS_ACROSS_BOX:

@@ -354,7 +354,7 @@ class OccupancyGrid(nn.Module):
                 occ.masked_fill_(~self.seen0, 0.0)
             if level == 1:  # cells inside the box belong to level 0
                 occ.masked_fill_(self._box_cells(self.outer_resolution, occ.device), 0.0)
-            threshold = min(float(occ.mean()), self.threshold)
+            threshold = occ.mean().clamp_max(self.threshold)  # a 0-d tensor: no host sync on CUDA
             binary.copy_(occ > threshold)
 
     def occupied_fraction(self) -> float:

@@ -260,6 +260,7 @@ def render_view(model, data, index: int, device, chunk: int = 8192) -> dict:
 def quick_eval(model, data, views, device, max_views: int = 4) -> dict:
     """Held-out PSNR and mIoU (vs composited labels, and ground truth when present) on a few views."""
     from srfpipe.srf import metrics
+    from srfpipe.srf.data import remap_ground_truth
 
     mses, conf, conf_gt = [], None, None
     c = len(data.classes)
@@ -281,15 +282,6 @@ def quick_eval(model, data, views, device, max_views: int = 4) -> dict:
     if conf_gt is not None:
         result["miou_gt"] = float(np.nanmean(metrics.iou_from_confusion(conf_gt)))
     return result
-
-
-def remap_ground_truth(gt: np.ndarray, gt_classes: list[str], classes: list[str]) -> np.ndarray:
-    """Ground-truth label image in the trained class order (1 + index in `classes`, 0 otherwise)."""
-    lookup = np.zeros(256, dtype=np.uint8)
-    for value, name in enumerate(gt_classes):
-        if name in classes:
-            lookup[value] = classes.index(name) + 1
-    return lookup[gt]
 
 
 REAL_CAPTURE_APPEARANCE_DIM = 8
