@@ -250,6 +250,12 @@ def _file_digest(file: str | Path, algorithm: str = INTEGRITY_ALGORITHM) -> str:
     return digest.hexdigest()
 
 
+def file_sha256(path: str | Path) -> str:
+    """Hex SHA-256 of any file's bytes (an ONNX model, a simulator package's files), read as the
+    integrity manifest reads an artifact's."""
+    return _file_digest(path, "sha256")
+
+
 def _digest_workers(total_bytes: int, n_files: int) -> int:
     """Threads for hashing: one for small artifacts, else up to 4 (never more than the CPUs)."""
     if total_bytes < (32 << 20) or n_files < 2:

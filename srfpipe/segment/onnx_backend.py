@@ -25,7 +25,6 @@ pad_multiple.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 from dataclasses import dataclass
@@ -59,14 +58,6 @@ def resolve_model(model: str) -> Path:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: ONNX model file does not exist (segmentation.model)")
     return path
-
-
-def file_sha256(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def execution_providers(device: str = "auto") -> list[str]:
@@ -466,6 +457,8 @@ class OnnxSegmenter:
         return probs[channel].astype(np.float32)
 
     def describe(self) -> dict:
+        from srfpipe.artifacts import file_sha256
+
         return {"path": str(self.path), "sha256": file_sha256(self.path), "kind": self.kind,
                 "activation": self.activation, "layout": self.layout,
                 "input_size": list(self.input_size) if self.input_size else None,

@@ -35,7 +35,6 @@ measures whether it does.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import math
@@ -310,14 +309,6 @@ def scene_mjcf(arm, meshes: dict[str, str], mesh_colours: dict[str, list], targe
 # ------------------------------------------------------------------------------------------------ the stage
 
 
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def _read_ground_truth(images_path: Path | None) -> tuple[Path | None, dict | None]:
     if images_path is None:
         return None, None
@@ -344,7 +335,7 @@ def package(occupancy_path, srf_path, out_path, options: dict, images_path=None,
     import open3d as o3d
     import zarr
 
-    from srfpipe.artifacts import atomic_directory, meta, open_artifact, provenance
+    from srfpipe.artifacts import atomic_directory, file_sha256, meta, open_artifact, provenance
     from srfpipe.evaluate import class_colours
     from srfpipe.occupancy.distill import signed_distance_brick
     from srfpipe.occupancy.grid import VoxelGrid
@@ -458,7 +449,7 @@ def package(occupancy_path, srf_path, out_path, options: dict, images_path=None,
 
         mujoco.MjModel.from_xml_path(str(tmp / "scene.xml"))
         (tmp / "targets.json").write_text(json.dumps(targets, indent=1) + "\n")
-        files = {p.relative_to(tmp).as_posix(): _sha256(p) for p in sorted(tmp.rglob("*"))
+        files = {p.relative_to(tmp).as_posix(): file_sha256(p) for p in sorted(tmp.rglob("*"))
                  if p.is_file() and not {"contact.zarr", "baked.zarr"} & set(p.parts)}
         versions_extra = {"mujoco": mujoco.__version__}
         reachable = [i for i, t in enumerate(targets) if t["station"]["reachable"]]
