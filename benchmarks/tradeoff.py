@@ -136,9 +136,9 @@ def render_ms(srf: Path, size: int = 64, repeats: int = 5) -> float | None:
 def ground_truth_folder(results: Path) -> Path | None:
     """The capture's ground_truth/ that `srfpipe package` reads (recorded in images.zarr), else
     results/<scene>/capture/ground_truth; None without one."""
-    from srfpipe.sim.package import _read_ground_truth
+    from srfpipe.sim.package import read_ground_truth
 
-    folder = _read_ground_truth(results / "images.zarr")[0] if (results / "images.zarr").exists() else None
+    folder = read_ground_truth(results / "images.zarr")[0] if (results / "images.zarr").exists() else None
     fallback = results / "capture" / "ground_truth"
     return folder or (fallback if (fallback / "scene.json").exists() else None)
 

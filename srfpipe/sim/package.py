@@ -309,7 +309,9 @@ def scene_mjcf(arm, meshes: dict[str, str], mesh_colours: dict[str, list], targe
 # ------------------------------------------------------------------------------------------------ the stage
 
 
-def _read_ground_truth(images_path: Path | None) -> tuple[Path | None, dict | None]:
+def read_ground_truth(images_path: Path | None) -> tuple[Path | None, dict | None]:
+    """The capture's ground_truth/ folder that images.zarr (`images_path`) records, and its
+    scene.json; (None, None) without an images.zarr, a recorded folder or its scene.json."""
     if images_path is None:
         return None, None
     from srfpipe.artifacts import meta, open_artifact
@@ -352,7 +354,7 @@ def package(occupancy_path, srf_path, out_path, options: dict, images_path=None,
     roles = dict(zip(attrs["distance"]["classes"], attrs["distance"]["roles"]))
     avoid = [c for c, r in roles.items() if r == "avoid"]
     reach = [c for c, r in roles.items() if r == "reach"]
-    gt_folder, gt_scene = _read_ground_truth(Path(images_path) if images_path else None)
+    gt_folder, gt_scene = read_ground_truth(Path(images_path) if images_path else None)
     units = resolve_unit(options, attrs.get("unit"), gt_scene)
     s = units["metres_per_unit"]
     sim_from_world = np.diag([s, s, s, 1.0])
