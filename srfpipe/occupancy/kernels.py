@@ -59,11 +59,12 @@ def nearest_channels_u8(points, grid, origin, inv_v, out):
 
 
 @njit(inline="always")
-def _corner(u, n):
+def axis_corners(u, n):
     """Lower corner index, the other corner and the weight of the upper one along one axis.
 
     u is the coordinate in voxel-centre units (centre of voxel i at u = i); beyond the outermost
-    centres the value is held constant (both corners clamp to the edge).
+    centres the value is held constant (both corners clamp to the edge). Also the trilinear
+    lookup of the baked field's ray march (srfpipe.sim.baked).
     """
     i0 = int(np.floor(u))
     f = u - i0
@@ -94,9 +95,9 @@ def trilinear_channels_u8(points, grid, origin, inv_v, scale, out):
             if gx != gx or gy != gy or gz != gz:
                 bad += 1
             continue
-        x0, x1, fx = _corner(gx - 0.5, nx)
-        y0, y1, fy = _corner(gy - 0.5, ny)
-        z0, z1, fz = _corner(gz - 0.5, nz)
+        x0, x1, fx = axis_corners(gx - 0.5, nx)
+        y0, y1, fy = axis_corners(gy - 0.5, ny)
+        z0, z1, fz = axis_corners(gz - 0.5, nz)
         w000 = (1 - fz) * (1 - fy) * (1 - fx)
         w001 = (1 - fz) * (1 - fy) * fx
         w010 = (1 - fz) * fy * (1 - fx)
@@ -128,9 +129,9 @@ def trilinear_f32(points, grid, origin, inv_v, out):
             if gx != gx or gy != gy or gz != gz:
                 bad += 1
             continue
-        x0, x1, fx = _corner(gx - 0.5, nx)
-        y0, y1, fy = _corner(gy - 0.5, ny)
-        z0, z1, fz = _corner(gz - 0.5, nz)
+        x0, x1, fx = axis_corners(gx - 0.5, nx)
+        y0, y1, fy = axis_corners(gy - 0.5, ny)
+        z0, z1, fz = axis_corners(gz - 0.5, nz)
         c00 = grid[z0, y0, x0] * (1 - fx) + grid[z0, y0, x1] * fx
         c01 = grid[z0, y1, x0] * (1 - fx) + grid[z0, y1, x1] * fx
         c10 = grid[z1, y0, x0] * (1 - fx) + grid[z1, y0, x1] * fx
@@ -175,9 +176,9 @@ def distance_gradient(points, grid, origin, voxel_size, out_d, out_g):
                 e[a] = (u[a] - hi) * voxel_size
                 u[a] = hi
                 free[a] = 0.0
-        x0, x1, fx = _corner(u[0], nx)
-        y0, y1, fy = _corner(u[1], ny)
-        z0, z1, fz = _corner(u[2], nz)
+        x0, x1, fx = axis_corners(u[0], nx)
+        y0, y1, fy = axis_corners(u[1], ny)
+        z0, z1, fz = axis_corners(u[2], nz)
         d000 = grid[z0, y0, x0]
         d001 = grid[z0, y0, x1]
         d010 = grid[z0, y1, x0]
