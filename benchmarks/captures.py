@@ -63,6 +63,7 @@ VARIANTS = {
     "orchard-apple": ("orchard", {"segmentation": {"prompts": ["apple"]}}),
     "orchard-lens": ("orchard", {"orchard": {"width": 605, "height": 806, "distortion": PHONE_LENS}}),
 }
+FIVE_MINUTES = 300.0
 THIN_PART_PX = 5  # plant-small: parts thinner than this vanish from every third view's masks
 MASK_BLUR_PX = 1.5  # plant-small: Gaussian sigma of the masks' soft edges
 
@@ -92,6 +93,8 @@ def scene_configs(names: list[str], quick: bool) -> dict[str, dict]:
             scene.setdefault("poses", {})["refine"] = "none"
         if quick:
             scene.setdefault("train", {})["time_budget"] = 60
+        else:  # the field's weights at 5 minutes: the panel's srfpipe_psnr_5min, from the same run
+            scene.setdefault("train", {})["snapshot_seconds"] = [FIVE_MINUTES]
         scenes[name] = scene
     return scenes
 
@@ -159,6 +162,7 @@ def scene_report(results: Path, workdir: Path, name: str) -> dict:
         report["steps"] = info.get("iterations_done")
         report["appearance_dim"] = info.get("config", {}).get("appearance_dim")
         report["grid_resolution"] = info.get("model_config", {}).get("inner", {}).get("resolution")
+        report.update(five_minute_metrics(results / name, info))
     occupancy = results / name / "occupancy.zarr"
     report["distill_ok"] = occupancy.exists()
     if occupancy.exists():
@@ -168,6 +172,20 @@ def scene_report(results: Path, workdir: Path, name: str) -> dict:
     report["rule_seconds"] = {rule: rule_seconds(workdir, name, rule)
                               for rule in ("poses", "downscale", "segment_*", "composite", "train", "evaluate", "distill")}
     return report
+
+
+def five_minute_metrics(results: Path, info: dict) -> dict:
+    """Held-out PSNR and SSIM of the run's snapshot at FIVE_MINUTES of training (what one 10-minute
+    run had reached by then), rendered by the same code as peers.py's; empty without that snapshot."""
+    from peers import SrfRenderer, read_views, srf_snapshots
+
+    snapshots = srf_snapshots(results / "srf.ckpt", info.get("fingerprint"))
+    if not snapshots:
+        return {}
+    path = min(snapshots, key=lambda p: abs(snapshots[p] - FIVE_MINUTES))
+    views = read_views(results / "images.zarr")
+    metrics = SrfRenderer(results / "srf.zarr", views, np.asarray(info["heldout_views"])).metrics(Path(path))
+    return {"psnr_5min": metrics["psnr"], "ssim_5min": metrics["ssim"], "snapshot_5min_seconds": snapshots[path]}
 
 
 def reference_scenes(results: Path, scenes: dict[str, dict]) -> dict[str, dict]:
@@ -232,7 +250,7 @@ def panel_entry(scene: dict, peers: dict) -> dict:
         "train_view_psnr": scene.get("train_view_psnr"), "generalization_gap_db": scene.get("generalization_gap_db"),
         "nerfacto_psnr_5min": ((budgets.get("300") or {}).get("nerfacto") or {}).get("psnr"),
         "nerfacto_psnr_10min": ((budgets.get("600") or {}).get("nerfacto") or {}).get("psnr"),
-        "srfpipe_psnr_5min": ((budgets.get("300") or {}).get("srf") or {}).get("psnr"),
+        "srfpipe_psnr_5min": scene.get("psnr_5min", ((budgets.get("300") or {}).get("srf") or {}).get("psnr")),
         "bounds_source": bounds.get("source"), "steps": scene.get("steps"),
     }
 
@@ -243,7 +261,12 @@ def peers_by_scene() -> dict:
     if not path.exists():
         return {}
     report = json.loads(path.read_text())
-    return {name: report[name] for name in report.get("scenes", []) if isinstance(report.get(name), dict)}
+    side_by_side = {name: report[name] for name in report.get("scenes", []) if isinstance(report.get(name), dict)}
+    nerfacto_alone = report.get("panel") or {}  # measured on the panel's own builds: these win
+    return {name: {"budgets": {b: {**((side_by_side.get(name) or {}).get("budgets", {}).get(b) or {}),
+                                   **((nerfacto_alone.get(name) or {}).get("budgets", {}).get(b) or {})}
+                               for b in ("300", "600")}}
+            for name in {*side_by_side, *nerfacto_alone}}
 
 
 def main() -> int:
