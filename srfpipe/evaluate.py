@@ -72,6 +72,13 @@ def class_colours(classes: list[str], label_attrs: dict | None = None) -> np.nda
     return colours
 
 
+def class_rgba(classes: list[str]) -> dict[str, list[float]]:
+    """Each class's colour in the evaluation renders (class_colours, default table) as opaque RGBA in
+    [0, 1], by class name: the colours of the simulator package's class meshes (srfpipe.sim.package)."""
+    colours = class_colours(classes)
+    return {name: [float(c) / 255 for c in colours[classes.index(name) + 1]] + [1.0] for name in classes}
+
+
 def semantic_blend(rgb: np.ndarray, label: np.ndarray, colours: np.ndarray, alpha: float = 0.6) -> np.ndarray:
     """rgb (H, W, 3) float in [0, 1] blended with class colours where label > 0 -> uint8."""
     base = (np.clip(rgb, 0, 1) * 255).astype(np.float32)

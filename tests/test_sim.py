@@ -149,6 +149,30 @@ def test_distance_fields_are_finite_far_outside_the_grid(tree_package):
     assert isinstance(sim.fields, DistanceFields)
 
 
+def test_whole_grid_distance_is_the_cache_s_and_mesh_colours_are_the_eval_renders(tree_package):
+    """What package takes from other stages, through their public names: distill's whole-grid signed
+    distance (the cache's own field, brick by brick there) and evaluate's class colours."""
+    import zarr
+
+    from srfpipe.evaluate import class_colours, class_rgba
+    from srfpipe.occupancy import OccupancyCache
+    from srfpipe.occupancy.distill import signed_distance_field
+
+    cache = OccupancyCache.load(tree_package.parent / "sim_occupancy.zarr")
+    trunc = float(cache.attrs["distance"]["truncation"])
+    stored = zarr.open_group(str(cache.path), mode="r")["class_occupancy"]
+    occupied = np.asarray(stored[cache.class_index("branch")], dtype=bool)
+    field = signed_distance_field(occupied, cache.grid, trunc)
+    assert field.dtype == np.float32 and field.shape == cache.grid.shape
+    assert np.allclose(field, cache.distance_field("branch"), atol=1e-6)
+    assert np.all(signed_distance_field(np.zeros_like(occupied), cache.grid, trunc) == np.float32(trunc))
+    with pytest.raises(ValueError, match="no distance field"):
+        cache.distance_field("leaf")
+    rgba = class_rgba(CLASSES)
+    assert list(rgba) == CLASSES and all(c[3] == 1.0 for c in rgba.values())
+    assert np.allclose(np.array([c[:3] for c in rgba.values()]) * 255, class_colours(CLASSES)[1:])
+
+
 # ------------------------------------------------------------------------------------------ env
 
 

@@ -124,6 +124,15 @@ class OccupancyCache:
     def distance_classes(self) -> list[str]:
         return list(self._distance)
 
+    def distance_field(self, class_name: str) -> np.ndarray:
+        """The (z, y, x) float32 signed distance grid of `class_name` (world units, negative inside,
+        clipped at the truncation distance): what `distance` samples, for callers with their own
+        sampler (srfpipe.sim.runtime.DistanceFields). Not a copy: do not write to it."""
+        if class_name not in self._distance:
+            raise ValueError(f"no distance field for {class_name!r}; the cache has {list(self._distance)} "
+                             "(occupancy.avoid / occupancy.reach)")
+        return self._distance[class_name]
+
     def class_index(self, name: str) -> int:
         if name not in self.classes:
             raise ValueError(f"unknown class {name!r}; the cache has {self.classes}")

@@ -207,6 +207,15 @@ def signed_distance_brick(occupancy_array, channel: int, grid: VoxelGrid, zyx, t
     return np.clip(d, -truncation, truncation).astype(np.float32)
 
 
+def signed_distance_field(occupied: np.ndarray, grid: VoxelGrid, truncation: float) -> np.ndarray:
+    """Signed distance over the whole grid to the surface of one (z, y, x) occupancy, as the cache's
+    `distance` array holds it per class: float32 world units, negative inside, clipped to
+    +-truncation, +truncation everywhere when nothing is occupied (outside the grid is free)."""
+    whole = tuple(slice(0, n) for n in grid.shape)
+    d = signed_distance_brick(np.asarray(occupied, dtype=bool)[None], 0, grid, whole, truncation)
+    return np.full(grid.shape, truncation, np.float32) if d is None else d
+
+
 def distance_classes(classes: Sequence[str], options: dict) -> list[tuple[str, str]]:
     """(class, role) for every class to avoid or reach that the field has, in config order."""
     if not classes:

@@ -78,6 +78,12 @@ class AppleReachEnv(gym.Env):
     # ------------------------------------------------------------------ helpers
 
     @property
+    def last_view(self) -> dict | None:
+        """The wrist render behind the latest observation (Simulator.render_wrist: rgb, semantic, ...),
+        None before the first or when the wrist is not observed."""
+        return self._last_view
+
+    @property
     def target_info(self) -> dict:
         return self.sim.targets[self.target]
 

@@ -38,6 +38,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -328,169 +329,266 @@ def _relative(target: Path, start: Path) -> str:
     return os.path.relpath(Path(target).resolve(), Path(start).resolve())
 
 
-def package(occupancy_path, srf_path, out_path, options: dict, images_path=None, field=None) -> Path:
-    """Write the simulator package for one scene (see the module docstring). Returns `out_path`.
+@dataclass
+class SceneInputs:
+    """What `package` reads of one scene: the occupancy cache (srfpipe distill), its classes and their
+    roles, the world unit, and the capture's ground truth (read_ground_truth)."""
 
-    `srf_path` None packages a cache without a trained field: contact works, and renders too when
-    `field` is given (an object with density, radiance and background, e.g. an AnalyticField whose
-    cache this is), else not."""
-    import open3d as o3d
-    import zarr
+    group: object  # the occupancy.zarr group
+    attrs: dict  # its srfpipe attributes
+    grid: object  # srfpipe.occupancy.grid.VoxelGrid
+    classes: list[str]
+    avoid: list[str]
+    reach: list[str]
+    gt_folder: Path | None
+    gt_scene: dict | None
+    units: dict  # resolve_unit
+    occupancy: np.ndarray  # (z, y, x) bool: all matter
+    class_occupancy: np.ndarray  # (C, z, y, x) bool
 
-    from srfpipe.artifacts import atomic_directory, file_sha256, meta, open_artifact, provenance
-    from srfpipe.evaluate import class_colours
-    from srfpipe.occupancy.distill import signed_distance_brick
+    @property
+    def metres_per_unit(self) -> float:
+        return self.units["metres_per_unit"]
+
+    @property
+    def bounds_sim(self) -> np.ndarray:
+        return np.asarray(self.grid.bounds_world) * self.metres_per_unit
+
+
+def read_scene(occupancy_path: Path, srf_path: Path | None, options: dict, images_path=None) -> SceneInputs:
+    """Open the occupancy cache (checked; the trained field's artifact too, when given: the runtime
+    renders from it), its classes and roles (avoid / reach), the capture's ground truth and the unit."""
+    from srfpipe.artifacts import meta, open_artifact
     from srfpipe.occupancy.grid import VoxelGrid
-    from srfpipe.sim.arm import ArmSpec
 
-    occupancy_path, out_path = Path(occupancy_path), Path(out_path)
     group = open_artifact(occupancy_path, stage="distill")
     attrs = meta(group)
     if srf_path is not None:  # checked: the runtime renders from it (without it: contact only, no views)
-        srf_path = Path(srf_path)
         open_artifact(srf_path, stage="train")
-    grid = VoxelGrid.from_attrs(attrs["grid"])
-    classes = list(attrs["classes"])
     roles = dict(zip(attrs["distance"]["classes"], attrs["distance"]["roles"]))
-    avoid = [c for c, r in roles.items() if r == "avoid"]
-    reach = [c for c, r in roles.items() if r == "reach"]
     gt_folder, gt_scene = read_ground_truth(Path(images_path) if images_path else None)
     units = resolve_unit(options, attrs.get("unit"), gt_scene)
-    s = units["metres_per_unit"]
-    sim_from_world = np.diag([s, s, s, 1.0])
-    bounds_world = np.asarray(grid.bounds_world)
-    bounds_sim = bounds_world * s
-    occupancy = np.asarray(group["occupancy"][...], dtype=bool)
-    class_occ = np.asarray(group["class_occupancy"][...], dtype=bool)
-    v = grid.voxel_size
+    return SceneInputs(group, attrs, VoxelGrid.from_attrs(attrs["grid"]), list(attrs["classes"]),
+                       [c for c, r in roles.items() if r == "avoid"], [c for c, r in roles.items() if r == "reach"],
+                       gt_folder, gt_scene, units, np.asarray(group["occupancy"][...], dtype=bool),
+                       np.asarray(group["class_occupancy"][...], dtype=bool))
 
-    # the signed distance contact uses: the avoid classes' fields in the cache, or all matter
-    if avoid:
-        dist_world = {c: np.asarray(group["distance"][attrs["distance"]["classes"].index(c)]) for c in avoid}
-        contact_source = {"kind": "occupancy.zarr distance", "classes": avoid}
-    else:
-        trunc = float(attrs["distance"]["truncation"])
-        everything = np.stack([occupancy])
-        zyx = tuple(slice(0, n) for n in grid.shape)
-        d = signed_distance_brick(everything, 0, grid, zyx, trunc)
-        d = np.full(grid.shape, trunc, np.float32) if d is None else d
-        dist_world = {"occupied": d}
-        contact_source = {"kind": "contact.zarr distance", "classes": ["occupied"], "truncation": trunc}
 
+def contact_field(scene: SceneInputs) -> tuple[dict[str, np.ndarray], dict]:
+    """The signed distance fields contact uses (world units, by name) and the manifest's entry for
+    them: the cache's fields of the avoid classes, or, in a scene without an avoid class, the distance
+    to all occupied space (signed_distance_field; written to contact.zarr)."""
+    from srfpipe.occupancy.distill import signed_distance_field
+
+    distance = scene.attrs["distance"]
+    if scene.avoid:
+        fields = {c: np.asarray(scene.group["distance"][distance["classes"].index(c)]) for c in scene.avoid}
+        return fields, {"kind": "occupancy.zarr distance", "classes": scene.avoid}
+    trunc = float(distance["truncation"])
+    return ({"occupied": signed_distance_field(scene.occupancy, scene.grid, trunc)},
+            {"kind": "contact.zarr distance", "classes": ["occupied"], "truncation": trunc})
+
+
+def clearance_function(fields: dict[str, np.ndarray], grid, metres_per_unit: float):
+    """`clearance(points_sim) -> (N,)`: sim metres from each point to the nearest matter of `fields`
+    (signed distances in world units on `grid`, sampled trilinearly; the smallest of them)."""
     from srfpipe.occupancy import kernels
 
-    def clearance_sim(points_sim: np.ndarray) -> np.ndarray:
+    s = metres_per_unit
+    origin = np.asarray(grid.origin, np.float64)
+    arrays = [np.ascontiguousarray(field, np.float32) for field in fields.values()]
+
+    def clearance(points_sim: np.ndarray) -> np.ndarray:
         pts = np.ascontiguousarray(np.asarray(points_sim, dtype=np.float64) / s)
         best = np.full(len(pts), np.inf)
-        for field in dist_world.values():
-            dd = np.empty(len(pts)); grad = np.empty((len(pts), 3))
-            kernels.distance_gradient(pts, np.ascontiguousarray(field, np.float32), np.asarray(grid.origin, np.float64),
-                                      v, dd, grad)
-            best = np.minimum(best, dd)
+        for field in arrays:
+            d, grad = np.empty(len(pts)), np.empty((len(pts), 3))
+            kernels.distance_gradient(pts, field, origin, grid.voxel_size, d, grad)
+            best = np.minimum(best, d)
         return best * s
 
-    # fruit instances of each reach class, and their ground truth
-    instances, ground_truth = reach_instances(class_occ, classes, reach, grid.origin, v, options, gt_folder)
+    return clearance
+
+
+def find_targets(scene: SceneInputs, options: dict) -> tuple[dict[str, list[dict]], dict[str, dict], list[dict]]:
+    """The instances of each reach class and their ground-truth match (reach_instances), with their
+    centroid and radius in sim metres; the targets are all of them, in the order of the reach classes."""
+    instances, ground_truth = reach_instances(scene.class_occupancy, scene.classes, scene.reach, scene.grid.origin,
+                                              scene.grid.voxel_size, options, scene.gt_folder)
+    s = scene.metres_per_unit
     for inst in (inst for found in instances.values() for inst in found):
         inst["centroid_sim"] = (np.asarray(inst["centroid"]) * s).tolist()
         inst["radius_sim"] = inst["radius"] * s
-    targets = [inst for name in reach for inst in instances[name]]
+    return instances, ground_truth, [inst for name in scene.reach for inst in instances[name]]
 
-    # the arm, sized to the scene, and a station per target
+
+def place_arm(targets: list[dict], bounds_sim: np.ndarray, options: dict, clearance):
+    """The arm (ArmSpec), sized to the scene, and the station the MJCF places it at. Each target gets
+    its `station` (plan_station); the arm stands at the first reachable target's station, else (no
+    target, or none reachable) faces the object's centre from outside its box."""
+    from srfpipe.sim.arm import ArmSpec
+
     extent_sim = float(np.max(bounds_sim[1] - bounds_sim[0]))
     reach_m = options["arm_reach"] if options["arm_reach"] is not None else options["arm_reach_fraction"] * extent_sim
     arm = ArmSpec(reach=float(reach_m), wrist_fovy_deg=options["wrist_fovy_deg"])
     centre_sim = bounds_sim.mean(axis=0)
     floor_z = float(bounds_sim[0][2]) if options["floor"] == "bounds_min_z" else None
     for inst in targets:
-        inst["station"] = plan_station(np.asarray(inst["centroid_sim"]), inst["radius_sim"], clearance_sim, arm,
+        inst["station"] = plan_station(np.asarray(inst["centroid_sim"]), inst["radius_sim"], clearance, arm,
                                        centre_sim, options["approach_reach"], floor_z)
     first = next((t["station"] for t in targets if t["station"]["reachable"]), None)
-    if first is None:  # no target (or none reachable): face the object's centre from outside its box
+    if first is None:
         side = centre_sim + np.array([0.5 * (bounds_sim[1][0] - bounds_sim[0][0]) + 0.5 * arm.reach, 0.0, 0.0])
         side[2] = max(centre_sim[2], (floor_z if floor_z is not None else -np.inf) + arm.shoulder_height)
         first = {"base": (side - [0, 0, arm.shoulder_height]).tolist(), "yaw": math.pi}
+    return arm, first
+
+
+def write_meshes(folder: Path, scene: SceneInputs, max_triangles: int) -> tuple[dict, dict, dict]:
+    """meshes/{name}.ply (world units) and .stl (sim metres) of all matter (`occupied`) and of each
+    class (class_mesh). Returns the MJCF's mesh files and RGBA colours by name (a class in its colour
+    of the eval renders, evaluate.class_rgba) and the manifest's mesh entries."""
+    import open3d as o3d
+
+    from srfpipe.evaluate import class_rgba
+
+    (folder / "meshes").mkdir()
+    meshes, colours, mesh_info = {}, {}, {}
+    rgba = class_rgba(scene.classes)
+    named = [("occupied", scene.occupancy)] + [(c, scene.class_occupancy[i]) for i, c in enumerate(scene.classes)]
+    for name, occ in named:
+        mesh = class_mesh(occ, scene.grid.origin, scene.grid.voxel_size, max_triangles)
+        if mesh is None:
+            continue
+        o3d.io.write_triangle_mesh(str(folder / "meshes" / f"{name}.ply"), mesh)
+        sim_mesh = o3d.geometry.TriangleMesh(mesh).scale(scene.metres_per_unit, center=np.zeros(3))
+        sim_mesh.compute_triangle_normals()
+        o3d.io.write_triangle_mesh(str(folder / "meshes" / f"{name}.stl"), sim_mesh)
+        meshes[name] = f"meshes/{name}.stl"
+        colours[name] = rgba[name] if name in scene.classes else [0.55, 0.5, 0.45, 1.0]
+        mesh_info[name] = {"ply": f"meshes/{name}.ply", "stl": f"meshes/{name}.stl",
+                           "triangles": len(mesh.triangles), "vertices": len(mesh.vertices)}
+    if scene.classes:  # with classes, `occupied` would hide them: show it only as a faint shell
+        colours["occupied"] = [0.55, 0.5, 0.45, 0.12]
+    return meshes, colours, mesh_info
+
+
+def write_fields(folder: Path, scene: SceneInputs, distance: dict, contact: dict, srf_path, field, options) -> bool:
+    """baked.zarr, the field sampled on the cache's grid (srfpipe.sim.baked), when there is a field:
+    the trained one at `srf_path`, or `field`; contact.zarr, the distance to all occupied space, when
+    the scene has no avoid class. Returns whether baked.zarr was written."""
+    if srf_path is not None or field is not None:
+        from srfpipe.sim.baked import bake, write_baked
+
+        if field is None:
+            from srfpipe.srf.query import SemanticRadianceField
+
+            field = SemanticRadianceField.load(srf_path, device=options["device"])
+        floor = float(scene.attrs["config"].get("density_floor_alpha", 0.001))
+        write_baked(folder / "baked.zarr", bake(field, scene.grid, scene.group["probability"][...], floor),
+                    scene.attrs["grid"])
+    if not scene.avoid:
+        import zarr
+
+        store = zarr.open_group(str(folder / "contact.zarr"), mode="w")
+        shape = scene.grid.shape
+        store.create_array("distance", shape=shape, dtype=np.float32, chunks=shape)[...] = distance["occupied"]
+        store.attrs["srfpipe"] = {"grid": scene.attrs["grid"], "signed": "negative inside, world units",
+                                  "truncation": contact["truncation"]}
+    return srf_path is not None or field is not None
+
+
+def manifest_task(targets: list[dict], classes: list[str], reach: list[str], options: dict) -> dict:
+    """The manifest's task (None without targets) and the note that says why there is none."""
+    task = None if not targets else {
+        "kind": "reach", "classes": reach, "targets": len(targets),
+        "reachable_targets": [i for i, t in enumerate(targets) if t["station"]["reachable"]],
+        "success_margin": options["success_margin"],
+    }
+    note = None if targets else (
+        "no reach class in this scene (classes %s, occupancy.reach): geometry and contact only" % classes
+        if not reach else "no instance of the reach classes %s was found: geometry and contact only" % reach)
+    return {"task": task, "note": note}
+
+
+def manifest_frames(gt_scene: dict | None, metres_per_unit: float) -> dict:
+    """The manifest's frames: world (the capture's), sim (MuJoCo's: the world scaled to metres), cameras."""
+    s = metres_per_unit
+    return {
+        "world": (gt_scene or {}).get("world_frame", "the capture's world frame (z up assumed for gravity)"),
+        "sim": "MuJoCo frame: the world frame scaled by metres_per_unit (same origin and axes)",
+        "sim_from_world": np.diag([s, s, s, 1.0]).tolist(),
+        "up": "+z",
+        "cameras": "SRF renders take OpenCV camera_to_world in world units; MuJoCo cameras look along "
+                   "their -z with +y up: camera_to_world_cv = camera_to_world_mujoco @ diag(1, -1, -1, 1)",
+    }
+
+
+def scene_manifest(folder: Path, scene: SceneInputs, options: dict, inputs: tuple, out_path: Path, targets: list[dict],
+                   instances: dict, ground_truth: dict, arm, mesh_info: dict, contact: dict, baked: bool) -> dict:
+    """scene.json (see the module docstring); `inputs` (occupancy, srf, images paths, None where not
+    given), `folder` the package being written: its files (but the zarr stores) with their sha256."""
+    import mujoco
+
+    from srfpipe.artifacts import file_sha256, provenance
+
+    occupancy_path, srf_path, _ = inputs
+    files = {p.relative_to(folder).as_posix(): file_sha256(p) for p in sorted(folder.rglob("*"))
+             if p.is_file() and not {"contact.zarr", "baked.zarr"} & set(p.parts)}
+    units = scene.units
+    return {
+        "format": MANIFEST_FORMAT,
+        "srfpipe": provenance(STAGE, options, [p for p in inputs if p], complete=True),
+        "classes": scene.classes,
+        "roles": {"avoid": scene.avoid, "reach": scene.reach},
+        **manifest_task(targets, scene.classes, scene.reach, options),
+        "units": {**units, "world": units["unit"] or "unknown", "sim": "metre"},
+        "frames": manifest_frames(scene.gt_scene, scene.metres_per_unit),
+        "bounds_world": np.asarray(scene.grid.bounds_world).tolist(),
+        "bounds_sim": scene.bounds_sim.tolist(),
+        "voxel_size_world": scene.grid.voxel_size,
+        "field": {"srf": _relative(srf_path, out_path) if srf_path else None, "baked": "baked.zarr" if baked else None,
+                  "occupancy": _relative(occupancy_path, out_path), "contact": contact},
+        "arm": arm.describe(),
+        "mjcf": "scene.xml",
+        "meshes": mesh_info,
+        "instances": {name: len(found) for name, found in instances.items()},
+        "ground_truth": ground_truth or None,
+        "files": files,
+        "versions": {**package_versions_now(), "mujoco": mujoco.__version__},
+    }
+
+
+def package(occupancy_path, srf_path, out_path, options: dict, images_path=None, field=None) -> Path:
+    """Write the simulator package for one scene (see the module docstring). Returns `out_path`.
+
+    `srf_path` None packages a cache without a trained field: contact works, and renders too when
+    `field` is given (an object with density, radiance and background, e.g. an AnalyticField whose
+    cache this is), else not. The steps: read the cache (read_scene), the contact field
+    (contact_field), the targets and the arm's stations (find_targets, place_arm), then, in a hidden
+    sibling renamed when complete, the meshes and the MJCF (write_meshes, scene_mjcf), the sampled
+    fields (write_fields), targets.json and the manifest (scene_manifest)."""
+    import mujoco
+
+    from srfpipe.artifacts import atomic_directory
+
+    occupancy_path, out_path = Path(occupancy_path), Path(out_path)
+    srf_path = Path(srf_path) if srf_path is not None else None
+    scene = read_scene(occupancy_path, srf_path, options, images_path)
+    distance, contact = contact_field(scene)
+    instances, ground_truth, targets = find_targets(scene, options)
+    clearance = clearance_function(distance, scene.grid, scene.metres_per_unit)
+    arm, station = place_arm(targets, scene.bounds_sim, options, clearance)
 
     with atomic_directory(out_path) as tmp:
-        (tmp / "meshes").mkdir()
-        meshes, colours, mesh_info = {}, {}, {}
-        palette = class_colours(classes)  # the colours of the eval renders
-        for name, occ in [("occupied", occupancy)] + [(c, class_occ[i]) for i, c in enumerate(classes)]:
-            mesh = class_mesh(occ, grid.origin, v, options["mesh_max_triangles"])
-            if mesh is None:
-                continue
-            o3d.io.write_triangle_mesh(str(tmp / "meshes" / f"{name}.ply"), mesh)
-            sim_mesh = o3d.geometry.TriangleMesh(mesh).scale(s, center=np.zeros(3))
-            sim_mesh.compute_triangle_normals()
-            o3d.io.write_triangle_mesh(str(tmp / "meshes" / f"{name}.stl"), sim_mesh)
-            meshes[name] = f"meshes/{name}.stl"
-            colours[name] = ([float(c) / 255 for c in palette[classes.index(name) + 1]] + [1.0]
-                             if name in classes else [0.55, 0.5, 0.45, 1.0])
-            mesh_info[name] = {"ply": f"meshes/{name}.ply", "stl": f"meshes/{name}.stl",
-                               "triangles": len(mesh.triangles), "vertices": len(mesh.vertices)}
-        if classes:  # with classes, `occupied` would hide them: show it only as a faint shell
-            colours["occupied"] = [0.55, 0.5, 0.45, 0.12]
-        xml = scene_mjcf(arm, meshes, colours, targets, first, bounds_sim, options["timestep"])
+        meshes, colours, mesh_info = write_meshes(tmp, scene, options["mesh_max_triangles"])
+        xml = scene_mjcf(arm, meshes, colours, targets, station, scene.bounds_sim, options["timestep"])
         (tmp / "scene.xml").write_text(xml)
-        if srf_path is not None or field is not None:
-            from srfpipe.sim.baked import bake, write_baked
-
-            if field is None:
-                from srfpipe.srf.query import SemanticRadianceField
-
-                field = SemanticRadianceField.load(srf_path, device=options["device"])
-            write_baked(tmp / "baked.zarr", bake(field, grid, group["probability"][...],
-                                                 float(attrs["config"].get("density_floor_alpha", 0.001))), attrs["grid"])
-        if not avoid:
-            store = zarr.open_group(str(tmp / "contact.zarr"), mode="w")
-            store.create_array("distance", shape=grid.shape, dtype=np.float32, chunks=grid.shape)[...] = dist_world["occupied"]
-            store.attrs["srfpipe"] = {"grid": attrs["grid"], "signed": "negative inside, world units",
-                                      "truncation": contact_source["truncation"]}
-        # the MJCF must load: check it before the package becomes visible
-        import mujoco
-
-        mujoco.MjModel.from_xml_path(str(tmp / "scene.xml"))
+        baked = write_fields(tmp, scene, distance, contact, srf_path, field, options)
+        mujoco.MjModel.from_xml_path(str(tmp / "scene.xml"))  # the MJCF must load before the package is visible
         (tmp / "targets.json").write_text(json.dumps(targets, indent=1) + "\n")
-        files = {p.relative_to(tmp).as_posix(): file_sha256(p) for p in sorted(tmp.rglob("*"))
-                 if p.is_file() and not {"contact.zarr", "baked.zarr"} & set(p.parts)}
-        versions_extra = {"mujoco": mujoco.__version__}
-        reachable = [i for i, t in enumerate(targets) if t["station"]["reachable"]]
-        manifest = {
-            "format": MANIFEST_FORMAT,
-            "srfpipe": provenance(STAGE, options, [p for p in (occupancy_path, srf_path, images_path) if p],
-                                  complete=True),
-            "classes": classes,
-            "roles": {"avoid": avoid, "reach": reach},
-            "task": None if not targets else {
-                "kind": "reach", "classes": reach, "targets": len(targets), "reachable_targets": reachable,
-                "success_margin": options["success_margin"],
-            },
-            "note": None if targets else (
-                "no reach class in this scene (classes %s, occupancy.reach): geometry and contact only" % classes
-                if not reach else "no instance of the reach classes %s was found: geometry and contact only" % reach),
-            "units": {**units, "world": units["unit"] or "unknown", "sim": "metre"},
-            "frames": {
-                "world": (gt_scene or {}).get("world_frame", "the capture's world frame (z up assumed for gravity)"),
-                "sim": "MuJoCo frame: the world frame scaled by metres_per_unit (same origin and axes)",
-                "sim_from_world": sim_from_world.tolist(),
-                "up": "+z",
-                "cameras": "SRF renders take OpenCV camera_to_world in world units; MuJoCo cameras look along "
-                           "their -z with +y up: camera_to_world_cv = camera_to_world_mujoco @ diag(1, -1, -1, 1)",
-            },
-            "bounds_world": bounds_world.tolist(),
-            "bounds_sim": bounds_sim.tolist(),
-            "voxel_size_world": v,
-            "field": {"srf": _relative(srf_path, out_path) if srf_path else None,
-                      "baked": "baked.zarr" if (srf_path or field is not None) else None, "occupancy": _relative(occupancy_path, out_path),
-                      "contact": contact_source},
-            "arm": arm.describe(),
-            "mjcf": "scene.xml",
-            "meshes": mesh_info,
-            "instances": {name: len(found) for name, found in instances.items()},
-            "ground_truth": ground_truth or None,
-            "files": files,
-            "versions": {**package_versions_now(), **versions_extra},
-        }
+        manifest = scene_manifest(tmp, scene, options, (occupancy_path, srf_path, images_path), out_path,
+                                  targets, instances, ground_truth, arm, mesh_info, contact, baked)
         (tmp / "scene.json").write_text(json.dumps(manifest, indent=1) + "\n")
     return out_path
 

@@ -75,7 +75,7 @@ def run_episodes(package, policy: str, episodes: int, max_steps: int, seed: int,
             total += reward
             steps += 1
             if frames is not None and (steps % frame_every == 0 or terminated or truncated):
-                view = env.unwrapped._last_view
+                view = env.unwrapped.last_view
                 status = "SUCCESS" if info["success"] else ("CONTACT" if info["collision"] else "")
                 caption = (f"{policy} ep {episode} step {steps} d={info['distance']:.3f} m "
                            f"clear={float(np.min(info['clearance'])):.3f} m {status}")

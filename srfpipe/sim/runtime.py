@@ -176,7 +176,7 @@ class Simulator:
             grid = VoxelGrid.from_attrs(dict(group.attrs["srfpipe"])["grid"])
             return DistanceFields({"occupied": group["distance"][...]}, grid.origin, grid.voxel_size, self.s)
         cache = self.cache
-        return DistanceFields({c: cache._distance[c] for c in contact["classes"]}, cache.grid.origin,
+        return DistanceFields({c: cache.distance_field(c) for c in contact["classes"]}, cache.grid.origin,
                               cache.voxel_size, self.s)
 
     @property
