@@ -57,6 +57,7 @@ MANIFEST_FORMAT = "srfpipe-manifest-1"
 INTEGRITY_ALGORITHM = "sha256"
 _READ_BLOCK = 1 << 20  # files are hashed in 1 MB reads
 _ZARR_JSON = "zarr.json"
+FINGERPRINT_KEY = "manifest_sha256"  # an input's fingerprint in `inputs` (its integrity.manifest_sha256)
 
 log = logging.getLogger(__name__)
 
@@ -119,14 +120,23 @@ def _jsonable(value: Any) -> Any:
 
 
 def provenance(stage: str, config: dict | None, inputs: list[str | Path] | None, **extra) -> dict:
-    """The `srfpipe` attribute namespace for a new artifact (complete=False until committed)."""
+    """The `srfpipe` attribute namespace for a new artifact (complete=False until committed).
+
+    Each input that is itself a srfpipe artifact is recorded with its stage and its fingerprint
+    (`manifest_sha256`, the digest of its integrity manifest), so a later stage that is given this
+    artifact together with another one can tell whether that is the one it was built from
+    (`require_input`). An input written before integrity was recorded gets no fingerprint."""
     recorded_inputs = []
     for path in inputs or []:
         entry: dict[str, Any] = {"path": str(path)}
         try:
-            entry["stage"] = read_provenance(path).get("stage")
+            attrs = read_provenance(path)
+            entry["stage"] = attrs.get("stage")
         except (ArtifactError, FileNotFoundError, ValueError, KeyError, OSError):
             pass  # a raw input (a capture folder, a model file) has no provenance of its own
+        else:
+            if digest := fingerprint(attrs):
+                entry[FINGERPRINT_KEY] = digest
         recorded_inputs.append(entry)
     return _jsonable(
         {
@@ -591,3 +601,84 @@ def open_artifact(path: str | Path, stage: str | tuple[str, ...] | None = None, 
 def meta(group: zarr.Group) -> dict:
     """The `srfpipe` namespace of an open group."""
     return dict(group.attrs[NAMESPACE])
+
+
+# ------------------------------------------------------------------------ inputs that belong together
+
+# how a stage's artifact came from an input (for messages): "the images srf.zarr was trained on"
+_BUILT = {"train": "trained on", "composite": "composited from", "segment": "segmented from",
+          "distill": "distilled from", "downscale": "downscaled from", "package": "packaged from"}
+_WHAT = {"downscale": "images", "composite": "labels", "segment": "masks", "train": "field",
+         "distill": "occupancy cache", "poses": "poses"}
+
+
+def fingerprint(artifact: str | Path | dict) -> str | None:
+    """An artifact's fingerprint: the SHA-256 of its integrity manifest (`integrity.manifest_sha256`),
+    which covers every stored file but the root attributes. `artifact` is a path or its `srfpipe`
+    attributes; None for an artifact written before integrity was recorded."""
+    attrs = read_provenance(artifact) if not isinstance(artifact, dict) else artifact
+    integrity = attrs.get("integrity")
+    digest = integrity.get(FINGERPRINT_KEY) if isinstance(integrity, dict) else None
+    return digest if isinstance(digest, str) and digest else None
+
+
+def _resolved(path: str | Path) -> Path:
+    try:
+        return Path(path).resolve()
+    except (OSError, RuntimeError):
+        return Path(os.path.abspath(path))
+
+
+def require_input(artifact: str | Path, given: str | Path, stage: str) -> None:
+    """Refuse `given` (an artifact of stage `stage`) when `artifact` records an input of that stage
+    and `given` is not it: a stage that consumes `artifact` together with `given` (evaluate: srf.zarr
+    with images.zarr) would otherwise mix two scenes without a word.
+
+    The recorded inputs' fingerprints (see `provenance`) are compared with `given`'s: a different one
+    raises ArtifactError, one line naming both files. An input recorded without a fingerprint (an
+    artifact written before they were recorded) is compared by resolved path, and a different path
+    only logs a warning (a copied or moved results folder is still the same artifact). Nothing is
+    checked when `artifact` records no input of that stage, or when either cannot be read (the
+    stage's own `open_artifact` reports that)."""
+    artifact, given = Path(artifact), Path(given)
+    try:
+        attrs = read_provenance(artifact)
+        given_attrs = read_provenance(given)
+    except Exception:  # missing, not an artifact, damaged: open_artifact says so in its own words
+        return
+    if given_attrs.get("stage") != stage:
+        return  # the wrong kind of artifact altogether: open_artifact(given, stage) refuses it
+    recorded = [entry for entry in attrs.get("inputs") or []
+                if isinstance(entry, dict) and entry.get("stage") == stage and isinstance(entry.get("path"), str)]
+    if not recorded:
+        return
+    given_print = fingerprint(given_attrs)
+    prints = [entry[FINGERPRINT_KEY] for entry in recorded if isinstance(entry.get(FINGERPRINT_KEY), str)]
+    if given_print is not None and given_print in prints:
+        return
+    here = _resolved(given)
+    unprinted = [entry["path"] for entry in recorded if not isinstance(entry.get(FINGERPRINT_KEY), str)]
+    if any(_resolved(path) == here for path in unprinted):
+        return
+    what = _WHAT.get(stage, f"{stage} artifact")
+    built = _BUILT.get(str(attrs.get("stage")), "built from")
+    redo = "retrain" if attrs.get("stage") == "train" else f"rebuild {artifact.name} from it"
+    if not unprinted:  # every candidate has a fingerprint, and none is this one's
+        shown = "none" if given_print is None else given_print[:8] + ".."
+        same_path = [entry for entry in recorded if _resolved(entry["path"]) == here]
+        if same_path:
+            raise ArtifactError(f"{given}: changed since {artifact.name} ({artifact}) was {built} it (fingerprint "
+                                f"{shown}, {artifact.name} records {same_path[0][FINGERPRINT_KEY][:8]}..): {redo}")
+        raise ArtifactError(f"{given}: not the {what} {artifact.name} ({artifact}) was {built} (fingerprint {shown}, "
+                            f"{artifact.name} records {prints[0][:8]}..): pass the {given.name} of the same "
+                            f"scene, or {redo}")
+    log.warning("%s: %s (%s) was %s %s, not this file (recorded without a fingerprint, so only the paths "
+                "can be compared): make sure both are of the same scene", given, artifact.name, artifact, built,
+                " / ".join(unprinted))
+
+
+def check_inputs_match(artifact: str | Path, given: dict[str, str | Path | None]) -> None:
+    """`require_input(artifact, path, stage)` for each stage -> path of `given` (None: not given)."""
+    for stage, path in given.items():
+        if path is not None:
+            require_input(artifact, path, stage)

@@ -105,12 +105,17 @@ def depth_image(depth: np.ndarray, near: float, far: float) -> np.ndarray:
 
 
 def evaluate(images, labels, srf, out, options: dict, device="auto") -> dict:
-    """Compute the metrics and renders; write them to `out` atomically; return the metrics."""
+    """Compute the metrics and renders; write them to `out` atomically; return the metrics.
+
+    The images and labels must be the ones srf.zarr was trained on (their fingerprints, recorded in
+    srf.zarr's inputs): a field scored against another scene's capture is refused, not measured."""
+    from srfpipe.artifacts import check_inputs_match
     from srfpipe.srf.data import load_posed_images
     from srfpipe.srf.query import SemanticRadianceField
 
     from srfpipe.srf.io import read_curve
 
+    check_inputs_match(srf, {"downscale": images, "composite": labels})
     field = SemanticRadianceField.load(srf, device)
     data = load_posed_images(images, labels)
     curves = (read_curve(srf, "curve"), read_curve(srf, "eval_curve"))

@@ -319,3 +319,161 @@ def test_cli_stage_reports_a_damaged_input_in_one_line(tmp_path):
     assert len(errors) == 1 and "Traceback" not in result.stderr, result.stderr
     assert str(poses) in errors[0] and "array 'camera_to_world'" in errors[0] and "re-run its stage 'poses'" in errors[0]
     assert not out.exists()
+
+
+# ------------------------------------------------------------- artifacts checked against each other
+
+
+def downscaled(tmp_path: Path, name: str, seed: int) -> Path:
+    """A tiny images.zarr-like artifact (stage downscale) whose content depends on `seed`."""
+    path = tmp_path / name / "images.zarr"
+    with create_artifact(path, "downscale", config={"downscale": 1}) as group:
+        group.create_array("images", data=np.random.default_rng(seed).integers(0, 255, (2, 4, 4, 3), dtype=np.uint8))
+    return path
+
+
+def built_from(tmp_path: Path, name: str, *inputs: Path, stage: str = "train") -> Path:
+    path = tmp_path / name
+    with create_artifact(path, stage, config={}, inputs=list(inputs)) as group:
+        group.create_array("weights", data=np.ones(3))
+    return path
+
+
+def mismatch(artifact: Path, given: Path, stage: str, *patterns: str) -> str:
+    """require_input refuses `given` in one line naming both files."""
+    from srfpipe.artifacts import require_input
+
+    with pytest.raises(ArtifactError) as err:
+        require_input(artifact, given, stage)
+    message = str(err.value)
+    assert "\n" not in message, f"not one line: {message!r}"
+    assert str(given) in message and str(artifact) in message, message
+    for pattern in patterns:
+        assert re.search(pattern, message), f"the error does not say {pattern!r}: {message}"
+    return message
+
+
+def test_inputs_record_their_fingerprint(tmp_path):
+    from srfpipe.artifacts import fingerprint
+
+    images = downscaled(tmp_path, "a", 0)
+    raw = tmp_path / "model.onnx"
+    raw.write_bytes(b"not an artifact")
+    srf = built_from(tmp_path, "srf.zarr", images, raw)
+    recorded = read_provenance(srf)["inputs"]
+    assert recorded[0] == {"path": str(images), "stage": "downscale",
+                           "manifest_sha256": read_provenance(images)["integrity"]["manifest_sha256"]}
+    assert fingerprint(images) == recorded[0]["manifest_sha256"] and fingerprint(srf) is not None
+    assert recorded[1] == {"path": str(raw)}  # a raw input: neither stage nor fingerprint
+    strip_integrity(images)  # an input written before integrity was recorded: no fingerprint
+    assert "manifest_sha256" not in read_provenance(built_from(tmp_path, "old.zarr", images))["inputs"][0]
+
+
+def test_an_input_of_another_scene_is_refused_naming_both(tmp_path):
+    import shutil
+
+    from srfpipe.artifacts import check_inputs_match, require_input
+
+    a, b = downscaled(tmp_path, "a", 0), downscaled(tmp_path, "b", 1)
+    srf = built_from(tmp_path, "srf.zarr", a)
+    require_input(srf, a, "downscale")  # the images it was built from
+    shutil.copytree(a, tmp_path / "copy" / "images.zarr")  # the same artifact elsewhere: the same fingerprint
+    require_input(srf, tmp_path / "copy" / "images.zarr", "downscale")
+    message = mismatch(srf, b, "downscale", r"not the images srf\.zarr .* was trained on",
+                       r"fingerprint [0-9a-f]{8}\.\., srf\.zarr records [0-9a-f]{8}\.\.", "or retrain")
+    assert message.startswith(f"{b}: ")
+    with pytest.raises(ArtifactError, match=re.escape(str(b))):
+        check_inputs_match(srf, {"downscale": b, "composite": None})
+    # rebuilt in place since: the same path, other content
+    downscaled(tmp_path, "a", 2)
+    mismatch(srf, a, "downscale", "changed since srf.zarr .* was trained on it", "retrain")
+    # nothing recorded of that stage, or the wrong kind of artifact: nothing to compare here
+    require_input(srf, a, "composite")
+    require_input(built_from(tmp_path, "none.zarr"), b, "downscale")
+
+
+def test_an_input_recorded_without_fingerprint_is_compared_by_path_with_a_warning(tmp_path, caplog):
+    from srfpipe.artifacts import require_input
+
+    a, b = downscaled(tmp_path, "a", 0), downscaled(tmp_path, "b", 1)
+    srf = built_from(tmp_path, "srf.zarr", a)
+    group = zarr.open_group(str(srf), mode="r+")  # as written before fingerprints were recorded
+    attrs = dict(group.attrs["srfpipe"])
+    attrs["inputs"] = [{"path": str(a), "stage": "downscale"}]
+    group.attrs["srfpipe"] = attrs
+    with caplog.at_level(logging.WARNING, logger="srfpipe.artifacts"):
+        require_input(srf, a, "downscale")
+        assert not caplog.records
+        require_input(srf, b, "downscale")  # only a warning: a moved results folder is no other scene
+    assert len(caplog.records) == 1 and str(b) in caplog.text and str(a) in caplog.text, caplog.text
+
+
+@pytest.fixture(scope="module")
+def two_scenes(tmp_path_factory):
+    """Two tiny synthetic captures (cameras at other distances) and a field trained briefly on the first."""
+    from srfpipe.config import section_defaults
+    from srfpipe.srf.synthetic import write_scene
+    from srfpipe.srf.trainer import train
+
+    root = tmp_path_factory.mktemp("two_scenes")
+    a = write_scene(root / "a", views=4, width=16, height=12)
+    b = write_scene(root / "b", views=4, width=16, height=12, radius=2.6)
+    options = section_defaults("train")
+    options.update(iterations=4, rays_per_batch=64, default_cells=12, outer_resolution=8, hidden=16,
+                   outer_samples=8, before_samples=4, checkpoint_every=0, log_every=2, eval_every=0,
+                   occupancy_update_every=2, occupancy_warmup=2, time_budget=0)
+    srf = root / "a" / "srf.zarr"
+    train(*a, srf, options, holdout_every=2)
+    return root, a, b, srf, options
+
+
+def test_evaluate_refuses_a_field_trained_on_another_scene(two_scenes):
+    """issue 32: a field scored against a capture it never saw (mIoU 0.99 of nothing) is refused."""
+    from srfpipe.evaluate import evaluate
+
+    root, (images_a, labels_a), (images_b, labels_b), srf, _ = two_scenes
+    options = {"holdout_every": 2, "train_views": 1, "supersample": 1}
+    with pytest.raises(ArtifactError) as err:
+        evaluate(images_b, labels_b, srf, root / "eval_b", options, device="cpu")
+    message = str(err.value)
+    assert "\n" not in message and message.startswith(f"{images_b}: not the images srf.zarr ({srf}) was trained on")
+    assert not (root / "eval_b").exists()
+    # the right images with the other scene's labels: refused too (srf.zarr records its labels)
+    with pytest.raises(ArtifactError, match=re.escape(f"{labels_b}: not the labels srf.zarr ({srf})")):
+        evaluate(images_a, labels_b, srf, root / "eval_ab", options, device="cpu")
+    metrics = evaluate(images_a, labels_a, srf, root / "eval_a", options, device="cpu")
+    assert metrics["views"] == 2 and (root / "eval_a" / "metrics.json").exists()
+
+
+def test_train_refuses_labels_composited_from_other_images(two_scenes):
+    from srfpipe.srf.data import load_posed_images
+    from srfpipe.srf.trainer import train
+
+    root, (images_a, labels_a), (images_b, labels_b), _, options = two_scenes
+    with pytest.raises(ArtifactError) as err:
+        train(images_a, labels_b, root / "mixed.zarr", options, holdout_every=2)
+    message = str(err.value)
+    assert "\n" not in message and str(images_a) in message and str(labels_b) in message
+    assert "not the images labels.zarr" in message and "composited from" in message
+    assert not (root / "mixed.zarr").exists()
+    assert load_posed_images(images_b, labels_b).count == 4
+
+
+def test_composite_refuses_masks_segmented_from_other_images(two_scenes):
+    from srfpipe.segment.composite import composite_masks
+
+    root, (images_a, _), (images_b, _), _, _ = two_scenes
+    names = [f"frame_{i:05d}" for i in range(4)]  # the same frame names and size: only the content differs
+
+    def masks(images: Path, name: str) -> Path:
+        path = root / name / "apple.zarr"
+        with create_artifact(path, "segment", inputs=[images], prompt="apple", threshold=0.5, names=names) as g:
+            g.create_array("probability", data=np.full((4, 12, 16), 255, np.uint8))
+        return path
+
+    with pytest.raises(ArtifactError) as err:
+        composite_masks(images_a, [masks(images_b, "masks_b")], {}, root / "labels_mixed.zarr", progress=False)
+    message = str(err.value)
+    assert "\n" not in message and message.startswith(f"{images_a}: not the images apple.zarr")
+    assert "segmented from" in message and str(root / "masks_b" / "apple.zarr") in message
+    composite_masks(images_a, [masks(images_a, "masks_a")], {}, root / "labels_a.zarr", progress=False)

@@ -292,6 +292,12 @@ def test_frames_without_a_mask_are_unlabelled_not_empty(tmp_path):
     from srfpipe.srf.data import load_posed_images
 
     images = write_images(tmp_path / "images.zarr", red_blue_images(n=4, width=40, height=30))
+    group = zarr.open_group(str(images), mode="r+")  # a scene box, so that the loader reads the labels' frames
+    group.create_array("intrinsics", data=np.tile([40.0, 40.0, 20.0, 15.0], (4, 1)))
+    group.create_array("camera_to_world", data=np.tile(np.eye(4), (4, 1, 1)))
+    group.attrs["srfpipe"] = {**group.attrs["srfpipe"], "bounds_world": [[-1, -1, 1], [1, 1, 3]],
+                              "scene_from_world": np.eye(4).tolist()}
+    reseal_artifact(images)  # a deliberate edit of a finished artifact, before the masks are made from it
     folder = tmp_path / "masks"
     folder.mkdir()
     for i in (0, 2):  # frames 1 and 3 were never labelled
@@ -308,12 +314,6 @@ def test_frames_without_a_mask_are_unlabelled_not_empty(tmp_path):
     valid = torch.tensor([True, False, True, False])
     assert float(losses.semantic_loss(logits, labels, valid)) > 7.9  # wrong on every labelled ray
     assert float(losses.semantic_loss(logits[~valid], labels[~valid])) < 1e-3
-    group = zarr.open_group(str(images), mode="r+")  # a scene box, so that the loader reads the labels' frames
-    group.create_array("intrinsics", data=np.tile([40.0, 40.0, 20.0, 15.0], (4, 1)))
-    group.create_array("camera_to_world", data=np.tile(np.eye(4), (4, 1, 1)))
-    group.attrs["srfpipe"] = {**group.attrs["srfpipe"], "bounds_world": [[-1, -1, 1], [1, 1, 3]],
-                              "scene_from_world": np.eye(4).tolist()}
-    reseal_artifact(images)  # a deliberate edit of a finished artifact
     data = load_posed_images(images, out)
     assert data.labelled.tolist() == [True, False, True, False]
 

@@ -135,7 +135,7 @@ def _check_mask_frames(path, shape, names, frames: Frames) -> None:
 
 
 def _open_masks(paths: list[str | Path], frames: Frames):
-    from srfpipe.artifacts import meta, open_artifact
+    from srfpipe.artifacts import meta, open_artifact, require_input
 
     arrays, prompts, thresholds, value_ranges = [], [], [], []
     labelled = np.ones(frames.count, dtype=bool)
@@ -146,6 +146,7 @@ def _open_masks(paths: list[str | Path], frames: Frames):
             found = group["probability"].dtype if "probability" in group else "no array"
             raise ValueError(f"{path}: 'probability' must be uint8 (round(255 p)), found {found}")
         _check_mask_frames(path, group["probability"].shape, info.get("names"), frames)
+        require_input(path, frames.path, "downscale")  # masks of this images.zarr, not of a sibling's
         if info["prompt"] in prompts:
             raise ValueError(f"{path}: prompt {info['prompt']!r} is given twice")
         arrays.append(group["probability"])

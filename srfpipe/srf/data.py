@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from srfpipe.artifacts import meta, open_artifact
+from srfpipe.artifacts import meta, open_artifact, require_input
 from srfpipe.cameras import scene_from_world_transform, transform_poses
 
 ORCHARD_GT_CLASSES = ["background", "apple", "branch", "leaf"]  # label value = index
@@ -82,7 +82,8 @@ def _check_matrix(value, name: str, path: Path) -> np.ndarray:
 
 
 def load_posed_images(images_path, labels_path=None) -> PosedImages:
-    """Read images.zarr (+ labels.zarr) into memory, checking shapes against each other."""
+    """Read images.zarr (+ labels.zarr) into memory, checking shapes against each other and that
+    labels.zarr was composited from this images.zarr (the fingerprint it records; `require_input`)."""
     images_path = Path(images_path)
     group = open_artifact(images_path, stage="downscale")
     attrs = meta(group)
@@ -131,6 +132,7 @@ def load_posed_images(images_path, labels_path=None) -> PosedImages:
                 f"{labels_path}: multihot {multihot.shape} does not match {n} images of {w}x{h} "
                 f"and {len(classes)} classes {classes}"
             )
+        require_input(labels_path, images_path, "downscale")
         if lattrs.get("bounds_world") is not None:
             # the labels stage refines the bounds (visual hull of the masks): from here on they
             # are the scene's bounds, and the scene frame is normalized to them
