@@ -477,3 +477,24 @@ def test_composite_refuses_masks_segmented_from_other_images(two_scenes):
     assert "\n" not in message and message.startswith(f"{images_a}: not the images apple.zarr")
     assert "segmented from" in message and str(root / "masks_b" / "apple.zarr") in message
     composite_masks(images_a, [masks(images_a, "masks_a")], {}, root / "labels_a.zarr", progress=False)
+
+
+def test_package_refuses_a_field_the_cache_was_not_distilled_from(two_scenes):
+    """sim package: occupancy.zarr records the srf.zarr it was distilled from; another field, or the
+    images of another scene with the right field, is refused before anything is written."""
+    from srfpipe.sim.package import package
+
+    root, (images_a, _), (images_b, labels_b), srf_a, options = two_scenes
+    from srfpipe.srf.trainer import train
+
+    srf_b = root / "b" / "srf.zarr"
+    train(images_b, labels_b, srf_b, options, holdout_every=2)
+    occupancy = built_from(root, "occupancy.zarr", srf_a, stage="distill")
+    with pytest.raises(ArtifactError) as err:
+        package(occupancy, srf_b, root / "sim_b", {})
+    message = str(err.value)
+    assert "\n" not in message and message.startswith(f"{srf_b}: not the field occupancy.zarr ({occupancy}) "
+                                                      f"was distilled from")
+    with pytest.raises(ArtifactError, match=re.escape(f"{images_b}: not the images srf.zarr ({srf_a}) was trained on")):
+        package(occupancy, srf_a, root / "sim_ab", {}, images_path=images_b)
+    assert not (root / "sim_b").exists() and not (root / "sim_ab").exists()

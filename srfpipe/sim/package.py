@@ -358,13 +358,17 @@ class SceneInputs:
 def read_scene(occupancy_path: Path, srf_path: Path | None, options: dict, images_path=None) -> SceneInputs:
     """Open the occupancy cache (checked; the trained field's artifact too, when given: the runtime
     renders from it), its classes and roles (avoid / reach), the capture's ground truth and the unit."""
-    from srfpipe.artifacts import meta, open_artifact
+    from srfpipe.artifacts import meta, open_artifact, require_input
     from srfpipe.occupancy.grid import VoxelGrid
 
     group = open_artifact(occupancy_path, stage="distill")
     attrs = meta(group)
     if srf_path is not None:  # checked: the runtime renders from it (without it: contact only, no views)
         open_artifact(srf_path, stage="train")
+        # one scene: the field the cache was distilled from, and the images that field was trained on
+        require_input(occupancy_path, srf_path, "train")
+        if images_path is not None:
+            require_input(srf_path, images_path, "downscale")
     roles = dict(zip(attrs["distance"]["classes"], attrs["distance"]["roles"]))
     gt_folder, gt_scene = read_ground_truth(Path(images_path) if images_path else None)
     units = resolve_unit(options, attrs.get("unit"), gt_scene)
