@@ -250,7 +250,8 @@ def panel_entry(scene: dict, peers: dict) -> dict:
         "train_view_psnr": scene.get("train_view_psnr"), "generalization_gap_db": scene.get("generalization_gap_db"),
         "nerfacto_psnr_5min": ((budgets.get("300") or {}).get("nerfacto") or {}).get("psnr"),
         "nerfacto_psnr_10min": ((budgets.get("600") or {}).get("nerfacto") or {}).get("psnr"),
-        "srfpipe_psnr_5min": scene.get("psnr_5min", ((budgets.get("300") or {}).get("srf") or {}).get("psnr")),
+        # from this run's own 5-minute snapshot (peers.json's srfpipe runs used other presets and images)
+        "srfpipe_psnr_5min": scene.get("psnr_5min"),
         "bounds_source": bounds.get("source"), "steps": scene.get("steps"),
     }
 
