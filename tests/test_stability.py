@@ -105,8 +105,12 @@ def fields_at_scales(synthetic, tmp_path_factory, device):
         fields = {}
         for scale in (0.01, 1.0, 100.0):
             scaled = scaled_images(images, scale, folder / f"images_{scale}.zarr")  # 1x too: the same path
+            # the same label images, recorded as composited from these images (train checks the pair)
+            composite = open_artifact(labels, stage="composite")
+            scaled_labels = write_labels(folder / f"labels_{scale}.zarr", np.asarray(composite["label"][...]),
+                                         meta(composite)["classes"], meta(composite)["names"], inputs=[scaled])
             out = folder / f"srf_{scale}.zarr"
-            train(scaled, labels, out, tiny_options(), holdout_every=3)
+            train(scaled, scaled_labels, out, tiny_options(), holdout_every=3)
             fields[scale] = SemanticRadianceField.load(out, device=device)
     finally:
         torch.set_num_threads(threads)
