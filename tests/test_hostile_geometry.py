@@ -109,3 +109,18 @@ def test_grid_larger_than_memory_is_refused_naming_the_key(monkeypatch):
         build_model_config({"max_resolution": 1024, "default_cells": 1024}, bounds, scene, ["a"], 4)
     config = build_model_config({"max_resolution": 64, "default_cells": 64}, bounds, scene, ["a"], 4)
     assert config["inner"]["resolution"] == [64, 64, 64]
+
+
+def test_ray_cast_from_far_away_ends_and_hits(tmp_path):
+    """An origin 1e300 away: t + a voxel's nudge equals t in floats, and the octree march used to
+    loop forever (a hypothesis example found it); it marches from the box's entry point now."""
+    from srfpipe.occupancy import AnalyticField, distill
+    from srfpipe.occupancy.cache import OccupancyCache
+
+    field = AnalyticField(["apple"], np.array([[-0.5] * 3, [0.5] * 3])).add_sphere([0.05, 0.0, 0.0], 0.3, "apple")
+    cache = OccupancyCache.load(distill(field, tmp_path / "c.zarr", {"voxel_size": 1 / 32, "brick": 16, "avoid": [],
+                                                                     "reach": []}, progress=False))
+    origins = np.array([[-1e300, 0.0, 0.0], [-1e17, 0.01, 0.0], [-2.0, 0.0, 0.0], [0.9, 0.9, 0.9]])
+    t, hit = cache.raycast(origins, np.tile([1.0, 0.0, 0.0], (4, 1)))
+    assert hit.tolist() == [0, 0, 0, -1]
+    assert t[2] == pytest.approx(1.75, abs=1 / 32) and t[1] == pytest.approx(1e17, rel=1e-12) and np.isinf(t[3])

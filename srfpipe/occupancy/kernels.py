@@ -255,11 +255,17 @@ def raycast(origins, directions, max_t, levels, offsets, shapes, leaf_class, ori
                 miss = True
         if miss or t0 > t1:
             continue
-        t = t0
-        while t <= t1:
+        # march from the box's entry point: t measured from there keeps a voxel's nudge above the
+        # float spacing of t even for an origin far away (1e300 away, t + nudge == t never advanced)
+        entry = np.empty(3, dtype=np.float64)
+        for a in range(3):
+            entry[a] = min(max(o[a] + t0 * d[a], origin[a]), origin[a] + dims[a] * voxel_size)
+        t = 0.0
+        t_end = t1 - t0
+        while t <= t_end:
             idx = np.empty(3, dtype=np.int64)
             for a in range(3):
-                g = (o[a] + (t + nudge) * d[a] - origin[a]) / voxel_size
+                g = (entry[a] + (t + nudge) * d[a] - origin[a]) / voxel_size
                 i = int(np.floor(g))
                 idx[a] = min(max(i, 0), dims[a] - 1)
             # the coarsest empty level containing the point (0 = the voxel itself)
@@ -271,7 +277,7 @@ def raycast(origins, directions, max_t, levels, offsets, shapes, leaf_class, ori
                     empty_level = k
                     break
             if empty_level < 0:
-                out_t[r] = t
+                out_t[r] = t0 + t
                 out_c[r] = leaf_class[idx[2], idx[1], idx[0]]
                 break
             size = 1 << empty_level
@@ -280,10 +286,13 @@ def raycast(origins, directions, max_t, levels, offsets, shapes, leaf_class, ori
                 if d[a] != 0.0:
                     lo_cell = (idx[a] >> empty_level) << empty_level
                     bound = lo_cell + size if d[a] > 0 else lo_cell
-                    t_a = (origin[a] + bound * voxel_size - o[a]) / d[a]
+                    t_a = (origin[a] + bound * voxel_size - entry[a]) / d[a]
                     if t_a < t_exit:
                         t_exit = t_a
-            t = max(t_exit, t + nudge)
+            t_next = max(t_exit, t + nudge)
+            if not t_next > t:  # no progress (rounding): leave the ray rather than loop forever
+                break
+            t = t_next
     return bad
 
 
