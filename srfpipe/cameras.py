@@ -126,6 +126,14 @@ def project_points(points_world: np.ndarray, camera_to_world: np.ndarray, intrin
     return uv, z
 
 
+def in_view(points_world: np.ndarray, camera_to_world: np.ndarray, intrinsics: np.ndarray, width: float,
+            height: float) -> np.ndarray:
+    """(M,) bool: the world points that lie in front of the camera and project inside its image."""
+    uv, depth = project_points(points_world, camera_to_world, intrinsics)
+    with np.errstate(invalid="ignore"):
+        return (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= width) & (uv[:, 1] >= 0) & (uv[:, 1] <= height)
+
+
 def scene_from_world_transform(bounds_min: np.ndarray, bounds_max: np.ndarray) -> np.ndarray:
     """The similarity (4x4) that maps the axis-aligned world box into [-1, 1]^3.
 

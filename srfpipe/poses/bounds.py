@@ -81,8 +81,7 @@ def bounds_from_frusta(
     grid = np.stack(np.meshgrid(ticks, ticks, ticks, indexing="ij"), -1).reshape(-1, 3) + focus
     seen = np.zeros(len(grid), dtype=np.int32)
     for pose, k, (width, height) in zip(camera_to_world, intrinsics, image_size):
-        uv, depth = cameras.project_points(grid, pose, k)
-        seen += (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= width) & (uv[:, 1] >= 0) & (uv[:, 1] <= height)
+        seen += cameras.in_view(grid, pose, k, width, height)
     kept = grid[seen >= visible_fraction * len(camera_to_world)]
     if len(kept) < 8:
         return np.stack([focus - radius / 2, focus + radius / 2])

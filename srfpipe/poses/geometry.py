@@ -99,9 +99,7 @@ def cameras_seeing(camera_to_world: np.ndarray, intrinsics: np.ndarray, image_si
     grid = np.stack(np.meshgrid(*ticks, indexing="ij"), -1).reshape(-1, 3)
     seeing = np.zeros(len(camera_to_world), dtype=bool)
     for i, (pose, k, (width, height)) in enumerate(zip(camera_to_world, intrinsics, image_size)):
-        uv, depth = cameras.project_points(grid, pose, k)
-        seeing[i] = bool(np.any((depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= width)
-                                & (uv[:, 1] >= 0) & (uv[:, 1] <= height)))
+        seeing[i] = bool(cameras.in_view(grid, pose, k, width, height).any())
     return seeing
 
 
