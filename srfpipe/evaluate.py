@@ -10,6 +10,8 @@ is >= 0.5, background otherwise; `miou` averages over the trained classes and ba
 A generalization check: a few training views (`evaluate.train_views`, evenly spaced) are rendered
 the same way and scored (`train_view_psnr`, no renders written); `generalization_gap_db` is that
 minus the held-out `psnr`, and a gap above GENERALIZATION_GAP_DB sets `overfit` and logs a warning.
+Sparse labels: when some training frames had no masks and the capture has ground truth, a few of
+them (`evaluate.unlabelled_views`) are scored against it too (`miou_unlabelled_gt`).
 
 A field with zero classes (a capture without masks) has nothing to segment and no reference
 labels to say which pixels are objects: its metrics are `psnr` and `ssim` only (no `psnr_object`,
@@ -53,8 +55,8 @@ def run(args) -> int:
 
         torch.set_num_threads(args.threads)
     metrics = evaluate(args.images, args.labels, args.srf, args.out, options, device=args.device)
-    summary = {k: metrics[k] for k in ("psnr", "psnr_object", "ssim", "miou", "miou_gt", "floater_fraction",
-                                       "train_view_psnr", "generalization_gap_db", "overfit")
+    summary = {k: metrics[k] for k in ("psnr", "psnr_object", "ssim", "miou", "miou_gt", "miou_unlabelled_gt",
+                                       "floater_fraction", "train_view_psnr", "generalization_gap_db", "overfit")
                if k in metrics}
     print(json.dumps(summary))
     return 0
@@ -142,6 +144,9 @@ GENERALIZATION_GAP_DB = 6.0
 # training views rendered for the generalization check when evaluate.train_views is not given
 DEFAULT_TRAIN_VIEWS = 3
 
+# unlabelled training views scored against ground truth when evaluate.unlabelled_views is not given
+DEFAULT_UNLABELLED_VIEWS = 8
+
 
 def train_view_choice(train: np.ndarray, count: int) -> np.ndarray:
     """`count` of the training views `train`, evenly spaced (the centres of `count` equal parts of
@@ -172,6 +177,9 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
     `curves`, srf.zarr's (curve, eval_curve), adds the training curve (`training_curve.svg`).
     `options["train_views"]` training views (default DEFAULT_TRAIN_VIEWS) are rendered the same way
     for `train_view_psnr`, `generalization_gap_db` and `overfit` (see GENERALIZATION_GAP_DB).
+    When some training frames had no masks (sparse labels) and the capture has ground truth,
+    `options["unlabelled_views"]` of them (default DEFAULT_UNLABELLED_VIEWS) are scored against it:
+    `iou_unlabelled_gt`, `miou_unlabelled_gt` (how far the field spread the labels it was given).
     """
     from srfpipe.figures import metrics_html, training_curve_svg
 
@@ -193,6 +201,8 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
         )
     train, heldout = split_views(data.count, holdout)
     train_chosen = train_view_choice(train, options.get("train_views", DEFAULT_TRAIN_VIEWS))
+    unlabelled = train[:0] if data.labelled is None else train[~data.labelled[train]]
+    unlabelled_chosen = train_view_choice(unlabelled, options.get("unlabelled_views", DEFAULT_UNLABELLED_VIEWS))
     supersample = default_supersample(data.width, data.height, options.get("supersample"))
 
     def render_view(index):
@@ -274,6 +284,20 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
             result.update(_iou_metrics(conf, ["background"] + data.classes, ""))
             if conf_gt is not None:
                 result.update(_iou_metrics(conf_gt, ["background"] + data.classes, "_gt"))
+            result["labelled_frames"] = int(data.count if data.labelled is None else data.labelled.sum())
+            if len(unlabelled_chosen) and conf_gt is not None:
+                # sparse labels: the training views that had no mask, against the capture's truth
+                conf_unlabelled = np.zeros_like(conf_gt)
+                for index in unlabelled_chosen:
+                    rendered, _ = render_view(index)
+                    reference = remap_ground_truth(data.gt_label[index], data.gt_classes, data.classes)
+                    conf_unlabelled += metrics.confusion(metrics.label_from_probabilities(rendered["semantic"]),
+                                                         reference, c + 1)
+                result["unlabelled_view_names"] = [data.names[i] for i in unlabelled_chosen]
+                result.update(_iou_metrics(conf_unlabelled, ["background"] + data.classes, "_unlabelled_gt"))
+            elif len(unlabelled_chosen):
+                log.info("%d training views had no masks; the capture has no ground truth to score them on",
+                         len(unlabelled))
         result.update({"label_source": str(labels), "srf": str(srf), "train_seconds": field.attrs.get("train_seconds"),
                        "per_view": per_view})
         (tmp / "metrics.json").write_text(json.dumps(_clean(result), indent=2))

@@ -107,6 +107,7 @@ def training_curve_svg(curve: dict, eval_curve: dict | None = None) -> str:
 SUMMARY_KEYS = [
     ("psnr", "PSNR (dB)"), ("psnr_object", "PSNR on object pixels (dB)"), ("ssim", "SSIM"),
     ("miou", "mIoU vs the masks (with background)"), ("miou_gt", "mIoU vs ground truth (with background)"),
+    ("miou_unlabelled_gt", "mIoU vs ground truth on training views without masks"),
     ("floater_fraction", "floater fraction"), ("samples_skipped_fraction", "samples skipped in empty space"),
     ("samples_per_ray", "samples evaluated per ray"), ("train_seconds", "training seconds"),
     ("views", "held-out views"),

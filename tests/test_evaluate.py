@@ -192,3 +192,40 @@ def test_depth_image_orders_near_to_far_and_blanks_missing_depth():
     assert index == sorted(index, reverse=True) and index[0] == 255 and index[-1] == 0
     assert index[0] - index[2] > 100  # depths 1 and 2 are far apart in colour
     assert (image[5:] == 0).all()
+
+
+class LabelsOnlyWhereLabelled(ExactField):
+    """A field that learnt its classes on the labelled frames only: exact there, no class anywhere else."""
+
+    def __init__(self, images_path, classes, labelled_poses):
+        super().__init__(images_path, classes)
+        self.labelled_poses = labelled_poses
+
+    def render(self, camera_to_world, intrinsics, width, height, supersample=1) -> dict:
+        out = super().render(camera_to_world, intrinsics, width, height, supersample)
+        if not any(np.allclose(camera_to_world, pose, atol=1e-4) for pose in self.labelled_poses):
+            out["semantic"] = np.zeros_like(out["semantic"])
+        return out
+
+
+def test_sparse_labels_are_scored_on_the_training_views_that_had_no_mask(scene):
+    """Frames 1 and 2 had no masks: evaluate renders them and scores their classes against the
+    capture's ground truth, so a field that did not spread the labels to them scores low there."""
+    from srfpipe.evaluate import world_from_scene_pose
+
+    folder, images, labels = scene
+    data = load_posed_images(images, labels)
+    sparse = dataclasses.replace(data, labelled=np.array([i not in (1, 2) for i in range(VIEWS)]))
+    spread = evaluate_field(ExactField(images, data.classes), sparse, folder / "eval_sparse", CENTRES, labels, "exact")
+    assert spread["unlabelled_view_names"] == ["frame_00001", "frame_00002"]
+    assert spread["labelled_frames"] == VIEWS - 2
+    assert spread["miou_unlabelled_gt"] > 0.9 and set(spread["iou_unlabelled_gt"]) == {"background", *data.classes}
+
+    poses = [world_from_scene_pose(data.world_from_scene, data.poses_scene[i].numpy())
+             for i in range(VIEWS) if i not in (1, 2)]
+    kept = evaluate_field(LabelsOnlyWhereLabelled(images, data.classes, poses), sparse, folder / "eval_not_spread",
+                          CENTRES, labels, "exact")
+    assert kept["miou_unlabelled_gt"] < 0.5 and kept["miou_gt"] > 0.9  # held-out views 0 and 4 were labelled
+
+    every = evaluate_field(ExactField(images, data.classes), data, folder / "eval_every", CENTRES, labels, "exact")
+    assert "miou_unlabelled_gt" not in every and every["labelled_frames"] == VIEWS
