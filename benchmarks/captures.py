@@ -64,6 +64,7 @@ VARIANTS = {
     "orchard-lens": ("orchard", {"orchard": {"width": 605, "height": 806, "distortion": PHONE_LENS}}),
 }
 FIVE_MINUTES = 300.0
+NERFACTO_MINUTES = (1, 2, 5, 10)  # the panel's nerfacto_psnr_{1,2,5,10}min (peers.py --panel)
 THIN_PART_PX = 5  # plant-small: parts thinner than this vanish from every third view's masks
 MASK_BLUR_PX = 1.5  # plant-small: Gaussian sigma of the masks' soft edges
 
@@ -248,8 +249,8 @@ def panel_entry(scene: dict, peers: dict) -> dict:
         "psnr": scene.get("psnr"), "ssim": scene.get("ssim"), "psnr_object": scene.get("psnr_object"),
         "miou_classes": scene.get("miou_gt_classes", scene.get("miou_classes")),
         "train_view_psnr": scene.get("train_view_psnr"), "generalization_gap_db": scene.get("generalization_gap_db"),
-        "nerfacto_psnr_5min": ((budgets.get("300") or {}).get("nerfacto") or {}).get("psnr"),
-        "nerfacto_psnr_10min": ((budgets.get("600") or {}).get("nerfacto") or {}).get("psnr"),
+        **{f"nerfacto_psnr_{minutes}min": ((budgets.get(str(60 * minutes)) or {}).get("nerfacto") or {}).get("psnr")
+           for minutes in NERFACTO_MINUTES},
         # from this run's own 5-minute snapshot (peers.json's srfpipe runs used other presets and images)
         "srfpipe_psnr_5min": scene.get("psnr_5min"),
         "bounds_source": bounds.get("source"), "steps": scene.get("steps"),
@@ -266,7 +267,7 @@ def peers_by_scene() -> dict:
     nerfacto_alone = report.get("panel") or {}  # measured on the panel's own builds: these win
     return {name: {"budgets": {b: {**((side_by_side.get(name) or {}).get("budgets", {}).get(b) or {}),
                                    **((nerfacto_alone.get(name) or {}).get("budgets", {}).get(b) or {})}
-                               for b in ("300", "600")}}
+                               for b in (str(60 * minutes) for minutes in NERFACTO_MINUTES)}}
             for name in {*side_by_side, *nerfacto_alone}}
 
 

@@ -38,7 +38,7 @@ curve rises). `time_to_nerfacto300_ratio` = nerfacto's time / srfpipe's time.
     python benchmarks/peers.py --nsvenv DIR   # nerfstudio's environment (default $NSVENV or /tmp/nsvenv)
     python benchmarks/peers.py --scenes fox --preset fast       # as peers.json's entries (each scene measured on its own, --preset fast)
     python benchmarks/peers.py --panel bottle beer  # nerfacto alone on captures.py's builds of panel captures
-                                                    # (5 and 10 min; peers.json `panel`; ~20 min a capture)
+                                                    # (1, 2, 5, 10 min; peers.json `panel`; ~20 min a capture)
 
 Writes benchmarks/results/peers.json (`peers_quick.json`) and peers.png (PSNR against the clock).
 Opt-in and never part of CI: nerfstudio is no dependency of srfpipe (a 3.5 GB environment).
@@ -67,7 +67,7 @@ BUDGETS = [60, 120, 300, 600]
 QUICK_BUDGETS = [60, 120, 240]
 QUICK_SCENES = ["fox"]
 TARGET_BUDGET = 300
-PANEL_BUDGETS = [300.0, 600.0]  # the panel's nerfacto_psnr_5min and _10min
+PANEL_BUDGETS = [60.0, 120.0, 300.0, 600.0]  # the panel's nerfacto_psnr_{1,2,5,10}min
 NERFACTO_SAVE_EVERY = 20  # steps (~10 s at 0.5 s a step)
 # The light nerfacto of ../shared/peers/nerfstudio-setup.sh (fits minutes on 2 cores), with the
 # evaluation during training switched off (its time would count against nerfacto's clock).
@@ -593,12 +593,19 @@ def run_panel_capture(name: str, args, cache_dir: Path) -> dict:
     held-out split srfpipe trained and was scored on (its numbers do not change when srfpipe does,
     so each capture is measured once and captures.py re-runs srfpipe alone)."""
     from srfpipe.artifacts import read_provenance
+    from srfpipe.config import section_defaults
     from srfpipe.srf.data import split_views
 
     results = args.captures_workdir / "results" / name
-    if not (results / "srf.zarr").exists():
-        raise SystemExit(f"{results}: build the capture first (python benchmarks/captures.py --scenes {name})")
-    holdout = int(read_provenance(results / "srf.zarr")["holdout_every"])
+    if (results / "srf.zarr").exists():
+        holdout = int(read_provenance(results / "srf.zarr")["holdout_every"])
+    elif (results / "images.zarr").exists():  # nerfacto needs srfpipe's images only: the split from the scene file
+        scene = yaml.safe_load((args.captures_workdir / "config" / "scenes" / f"{name}.yaml").read_text())
+        holdout = int({**section_defaults("evaluate"), **(scene.get("evaluate") or {})}["holdout_every"])
+    else:
+        raise SystemExit(f"{results}: build the capture's images first (python benchmarks/captures.py --scenes {name} "
+                         f"builds it whole; `snakemake results/{name}/images.zarr` in {args.captures_workdir} "
+                         "is enough for nerfacto)")
     views = read_views(results / "images.zarr")
     _, heldout = split_views(len(views["images"]), holdout)
     print(f"=== {name}: nerfacto on {len(views['images'])} views of {views['images'].shape[2]}x"
