@@ -203,7 +203,7 @@ def all_views_miou(results: Path) -> dict:
             "iou": dict(zip(["background", *data.classes], map(float, iou))), "views": data.count}
 
 
-def sparse_labels(workdir: Path, quick: bool, scenes: list[str]) -> dict:
+def sparse_labels(workdir: Path, quick: bool, scenes: list[str], fractions: list[str]) -> dict:
     """The sparse-label curve: each scene built once per labelled share, one scene name re-built
     after a change of its mask folder (Snakemake re-runs masks, composite, train and evaluate only)."""
     import shutil
@@ -221,7 +221,7 @@ def sparse_labels(workdir: Path, quick: bool, scenes: list[str]) -> dict:
         entry = {"training_frames": len(train), "budget_seconds": SPARSE_BUDGET[quick], "preset": SPARSE_PRESET,
                  "runs": {}}
         for tag, share in SPARSE_FRACTIONS.items():
-            if quick and tag not in QUICK_FRACTIONS:
+            if tag not in fractions or (quick and tag not in QUICK_FRACTIONS):
                 continue
             chosen = train_view_choice(train, labelled_count(share, len(train)))
             folder = workdir / "prepared" / name / tag
@@ -301,6 +301,8 @@ def main() -> int:
     parser.add_argument("--quick", action="store_true", help="a small turn, every frame kept, no fox")
     parser.add_argument("--only", choices=["orchard_video", "fox_sfm", "sparse"], default=None)
     parser.add_argument("--sparse-scenes", nargs="+", default=list(SPARSE_SCENES), choices=list(SPARSE_SCENES))
+    parser.add_argument("--fractions", nargs="+", default=list(SPARSE_FRACTIONS), choices=list(SPARSE_FRACTIONS),
+                        help="the labelled shares of the curve to measure (default: all)")
     parser.add_argument("--workdir", type=Path, default=REPO / "benchmarks" / "work" / "wild")
     args = parser.parse_args()
 
@@ -328,7 +330,7 @@ def main() -> int:
     if args.only in (None, "sparse"):
         sparse = report.setdefault("sparse", {})
         for name in args.sparse_scenes:
-            sparse[name] = sparse_labels(args.workdir / "sparse", args.quick, [name])[name]
+            sparse[name] = sparse_labels(args.workdir / "sparse", args.quick, [name], args.fractions)[name]
             report.update({f"{name}_{k}": v for k, v in sparse[name].items() if k.startswith("sparse_miou")})
             write_result(path, report)
         plot_sparse(sparse, path.with_name(path.stem + "_sparse.png"))
