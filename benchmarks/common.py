@@ -56,6 +56,13 @@ def renamed_paths(value, old: str, new: str):
     return value
 
 
+def holdout_every(scene: dict) -> int:
+    """The scene's evaluate.holdout_every, or the schema's default when the scene file does not set it."""
+    from srfpipe.config import section_defaults
+
+    return int((scene.get("evaluate") or {}).get("holdout_every", section_defaults("evaluate")["holdout_every"]))
+
+
 def snakemake_env() -> dict:
     """The environment for Snakemake: this interpreter's `srfpipe` script first on PATH."""
     return dict(os.environ, PATH=str(Path(sys.executable).parent) + os.pathsep + os.environ.get("PATH", ""))

@@ -60,7 +60,7 @@ import numpy as np
 import yaml
 
 from captures import FOX, PANEL, scene_configs
-from common import REPO, earlier_measurements, machine_info, result_path, rule_seconds, run_workflow, write_result, write_workdir
+from common import REPO, earlier_measurements, holdout_every, machine_info, result_path, rule_seconds, run_workflow, write_result, write_workdir
 
 SCENES = ["orchard", "fox"]
 BUDGETS = [60, 120, 300, 600]
@@ -505,12 +505,10 @@ def time_to(method: dict, target: float, refine: int) -> dict:
 
 
 def run_scene(name: str, args, cache_dir: Path) -> dict:
-    from srfpipe.config import section_defaults
-
     workdir = args.workdir
     print(f"=== {name}: srfpipe", flush=True)
     scene = scene_config(name, args.budgets, args.quick, args.preset, args.downscale)
-    holdout = int((scene.get("evaluate") or {}).get("holdout_every", section_defaults("evaluate")["holdout_every"]))
+    holdout = holdout_every(scene)
     write_workdir(workdir, {name: scene}, "occupancy")
     run_workflow(workdir, [f"results/{name}/eval"], log=workdir / "snakemake.log")
     results = workdir / "results" / name
@@ -593,7 +591,6 @@ def run_panel_capture(name: str, args, cache_dir: Path) -> dict:
     held-out split srfpipe trained and was scored on (its numbers do not change when srfpipe does,
     so each capture is measured once and captures.py re-runs srfpipe alone)."""
     from srfpipe.artifacts import read_provenance
-    from srfpipe.config import section_defaults
     from srfpipe.srf.data import split_views
 
     results = args.captures_workdir / "results" / name
@@ -601,7 +598,7 @@ def run_panel_capture(name: str, args, cache_dir: Path) -> dict:
         holdout = int(read_provenance(results / "srf.zarr")["holdout_every"])
     elif (results / "images.zarr").exists():  # nerfacto needs srfpipe's images only: the split from the scene file
         scene = yaml.safe_load((args.captures_workdir / "config" / "scenes" / f"{name}.yaml").read_text())
-        holdout = int({**section_defaults("evaluate"), **(scene.get("evaluate") or {})}["holdout_every"])
+        holdout = holdout_every(scene)
     else:
         raise SystemExit(f"{results}: build the capture's images first (python benchmarks/captures.py --scenes {name} "
                          f"builds it whole; `snakemake results/{name}/images.zarr` in {args.captures_workdir} "

@@ -47,7 +47,7 @@ import numpy as np
 
 import yaml
 
-from common import REPO, machine_info, merge, result_path, rule_seconds, run_workflow, write_result, write_workdir
+from common import REPO, holdout_every, machine_info, merge, result_path, rule_seconds, run_workflow, write_result, write_workdir
 
 SHARED = (REPO / ".." / "shared" / "data").resolve()
 FOX = SHARED / "fox"
@@ -216,7 +216,7 @@ def sparse_labels(workdir: Path, quick: bool, scenes: list[str], fractions: list
         write_workdir(workdir, {name: sparse_scene(name, f"prepared/{name}/100pct", quick)}, "eval")
         run_workflow(workdir, [f"results/{name}/capture"], log=workdir / "snakemake.log")
         truth = sorted((workdir / "results" / name / "capture" / "ground_truth" / "labels").glob("*.png"))
-        holdout = int(sparse_scene(name, "", quick).get("evaluate", {}).get("holdout_every", 8))
+        holdout = holdout_every(sparse_scene(name, "", quick))
         train, _ = split_views(len(truth), holdout)
         entry = {"training_frames": len(train), "budget_seconds": SPARSE_BUDGET[quick], "preset": SPARSE_PRESET,
                  "runs": {}}
@@ -325,7 +325,7 @@ def main() -> int:
         write_result(path, report)
     # the posed builds to compare with: the panel's numbers (benchmarks/captures.py, same defaults)
     panel = json.loads((REPO / "benchmarks" / "results" / "captures.json").read_text()).get("panel", {})
-    report["posed_reference"] = {name: {k: panel.get(name, {}).get(k) for k in ("psnr", "miou", "miou_classes")}
+    report["posed_reference"] = {name: {k: panel.get(name, {}).get(k) for k in ("psnr", "miou_classes")}
                                  for name in ("orchard", "fox")}
     if args.only in (None, "sparse"):
         sparse = report.setdefault("sparse", {})
