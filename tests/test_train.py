@@ -77,7 +77,7 @@ def one_thread():
     torch.set_num_threads(threads)
 
 
-def test_resumed_run_ends_with_the_same_weights(scene, tmp_path, one_thread):
+def test_resumed_run_ends_with_the_same_weights(scene, tmp_path, one_thread, device):
     _, images, labels = scene
     options = tiny_options(iterations=24, checkpoint_every=8, keep_checkpoints=True)
     full = tmp_path / "full.zarr"
@@ -96,8 +96,21 @@ def test_resumed_run_ends_with_the_same_weights(scene, tmp_path, one_thread):
     b, _ = read_srf(interrupted)
     sa, sb = a.state_dict(), b.state_dict()
     assert sa.keys() == sb.keys()
-    for key in sa:
-        assert torch.equal(sa[key], sb[key]), key
+    if device.type == "cpu":
+        for key in sa:
+            assert torch.equal(sa[key], sb[key]), key
+        return
+    # CUDA sums a grid's gradients with atomic adds in no fixed order, so two runs of the same steps
+    # differ in the last bits, and Adam turns a near-zero gradient's noise into a step of lr: the
+    # resumed run must be the same model (it renders the same images), not the same bits
+    from srfpipe.cameras import look_at
+
+    pose, k = look_at((2.0, 0.5, 0.8), (0.0, 0.0, 0.35)), [30.0, 30.0, 16.0, 12.0]
+    full_rgb = SemanticRadianceField.load(full, device=device).render(pose, k, 32, 24)["rgb"]
+    resumed_rgb = SemanticRadianceField.load(interrupted, device=device).render(pose, k, 32, 24)["rgb"]
+    agreement = -10 * np.log10(max(float(np.mean((full_rgb - resumed_rgb) ** 2)), 1e-12))
+    print(f"resumed vs uninterrupted render on {device}: {agreement:.1f} dB")
+    assert agreement > 30.0
 
 
 def test_checkpoint_from_other_settings_is_not_resumed(scene, tmp_path):
@@ -141,8 +154,8 @@ def _fingerprint_without_snapshots(images, labels, tmp_path):
     return read_srf(out)[1]["fingerprint"]
 
 
-def test_srf_zarr_round_trip_and_query_api(trained):
-    srf = SemanticRadianceField.load(trained, device="cpu")
+def test_srf_zarr_round_trip_and_query_api(trained, device):
+    srf = SemanticRadianceField.load(trained, device=device)
     assert srf.classes == ["apple", "branch", "leaf"]
     assert srf.scene_from_world.shape == (4, 4) and srf.bounds_world.shape == (2, 3)
     curve = read_curve(trained)
@@ -166,12 +179,12 @@ def test_srf_zarr_round_trip_and_query_api(trained):
         srf.semantic(np.zeros((3, 2)))
 
 
-def test_supersampled_render_is_the_area_mean_of_the_finer_render(trained):
+def test_supersampled_render_is_the_area_mean_of_the_finer_render(trained, device):
     # a pixel integrates the light over its footprint: with supersample s, each pixel is the mean of
     # the s x s pixels of the same camera rendered s times finer (a downscaled image's area average)
     from srfpipe.cameras import look_at
 
-    srf = SemanticRadianceField.load(trained, device="cpu")
+    srf = SemanticRadianceField.load(trained, device=device)
     pose, k = look_at((2.0, 0.5, 0.8), (0.0, 0.0, 0.35)), np.array([30.0, 30.0, 16.0, 12.0])
     coarse = srf.render(pose, k, 32, 24, supersample=2)
     fine = srf.render(pose, 2 * k, 64, 48)
@@ -184,21 +197,21 @@ def test_supersampled_render_is_the_area_mean_of_the_finer_render(trained):
         srf.render(pose, k, 32, 24, supersample=0)
 
 
-def test_density_is_per_world_unit(trained):
-    srf = SemanticRadianceField.load(trained, device="cpu")
+def test_density_is_per_world_unit(trained, device):
+    srf = SemanticRadianceField.load(trained, device=device)
     points = np.random.default_rng(1).uniform(-0.4, 0.4, (200, 3)) + [0, 0, 0.45]  # inside the bounds
-    x = torch.as_tensor(points @ srf.scene_from_world[:3, :3].T + srf.scene_from_world[:3, 3]).float()
+    x = torch.as_tensor(points @ srf.scene_from_world[:3, :3].T + srf.scene_from_world[:3, 3]).float().to(device)
     with torch.no_grad():
-        scene_sigma = srf.model.field.density(x)[0].numpy()
+        scene_sigma = srf.model.field.density(x)[0].cpu().numpy()
     assert np.allclose(srf.density(points), scene_sigma * srf.scale, rtol=1e-5)
 
 
-def test_evaluate_writes_metrics_and_renders(scene, trained, tmp_path):
+def test_evaluate_writes_metrics_and_renders(scene, trained, tmp_path, device):
     from srfpipe.evaluate import evaluate
 
     _, images, labels = scene
     out = tmp_path / "eval"
-    metrics = evaluate(images, labels, trained, out, {"holdout_every": 5}, device="cpu")
+    metrics = evaluate(images, labels, trained, out, {"holdout_every": 5}, device=device)
     saved = json.loads((out / "metrics.json").read_text())
     for key in ("psnr", "psnr_object", "ssim", "miou", "miou_gt", "iou", "iou_gt"):
         assert key in saved
@@ -213,7 +226,7 @@ def test_evaluate_writes_metrics_and_renders(scene, trained, tmp_path):
     assert "PSNR (dB)" in (out / "metrics.html").read_text() and "frame_00005" in (out / "metrics.html").read_text()
     assert (out / "training_curve.svg").read_text().count("<polyline") >= 5
     with pytest.raises(ValueError, match="holdout_every"):
-        evaluate(images, labels, trained, tmp_path / "eval2", {"holdout_every": 3}, device="cpu")
+        evaluate(images, labels, trained, tmp_path / "eval2", {"holdout_every": 3}, device=device)
 
 
 @pytest.mark.bad_input

@@ -77,7 +77,7 @@ def test_space_no_camera_sees_is_never_occupied(half):
 
 
 @pytest.mark.parametrize("drop", [False, True])
-def test_srf_zarr_keeps_the_mark_and_reads_one_written_without_it(tmp_path, drop):
+def test_srf_zarr_keeps_the_mark_and_reads_one_written_without_it(tmp_path, drop, device):
     import zarr
 
     from srfpipe.config import section_defaults
@@ -104,17 +104,16 @@ def test_srf_zarr_keeps_the_mark_and_reads_one_written_without_it(tmp_path, drop
         assert bool(model.occupancy.seen1.all()) and bool(model.occupancy.seen0.all())
     else:
         assert torch.equal(model.occupancy.seen1, seen1)
-    field = SemanticRadianceField.load(out, device="cpu")
     # Occupancy(x) is zero where no camera saw, whatever the field holds there: this scene's
     # cameras see its whole box, so the test marks half of the box unseen
-    field = SemanticRadianceField.load(out, device="cpu")
+    field = SemanticRadianceField.load(out, device=device)
     lo, hi = field.bounds_world
     points = lo + (hi - lo) * np.random.default_rng(0).uniform(0.0, 1.0, (2000, 3))
     before = field.density(points)
     assert np.count_nonzero(before) > 1000
     field.model.occupancy.seen0[: field.model.occupancy.seen0.numel() // 2] = False
     x = field._to_scene(points)
-    unseen = ~field.model.occupancy.seen(x).numpy()
+    unseen = ~field.model.occupancy.seen(x).cpu().numpy()
     after = field.density(points)
     assert 0 < unseen.sum() < len(points)
     assert np.all(after[unseen] == 0.0) and np.array_equal(after[~unseen], before[~unseen])
