@@ -29,7 +29,7 @@ def test_readme_quotes_no_commit_hashes():
 def test_ci_runs_the_readme_test_command():
     commands = [line.strip() for line in lines() if line.startswith(SETUP)]
     assert SETUP + "snakemake --cores 2 results/orchard/occupancy.zarr" in commands
-    test_command = SETUP + "python -m pytest -q"
+    test_command = SETUP + "python -m pytest -q -n 2 --dist loadfile"
     assert test_command in commands
     ci = [line.strip() for line in (REPO / ".ci" / "run").read_text().splitlines()]
     assert test_command in ci, ".ci/run must run exactly the README's test command"
