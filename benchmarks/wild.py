@@ -330,7 +330,9 @@ def main() -> int:
     if args.only in (None, "sparse"):
         sparse = report.setdefault("sparse", {})
         for name in args.sparse_scenes:
-            sparse[name] = sparse_labels(args.workdir / "sparse", args.quick, [name], args.fractions)[name]
+            measured = sparse_labels(args.workdir / "sparse", args.quick, [name], args.fractions)[name]
+            earlier = sparse.get(name, {})  # a run of some shares keeps the others' runs
+            sparse[name] = {**earlier, **measured, "runs": {**earlier.get("runs", {}), **measured["runs"]}}
             report.update({f"{name}_{k}": v for k, v in sparse[name].items() if k.startswith("sparse_miou")})
             write_result(path, report)
         plot_sparse(sparse, path.with_name(path.stem + "_sparse.png"))

@@ -8,6 +8,7 @@ into images.zarr and read back by the SRF data loader, masks imported from its l
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -220,6 +221,30 @@ def test_shipped_plant_scene_to_labels(workflow):
     assert scene.bounds_source == "frusta" and not scene.background_empty
     np.testing.assert_allclose(scene.semantic_bounds_world, region)
     assert np.prod(region[1] - region[0]) < 0.5 * np.prod(scene.bounds_world[1] - scene.bounds_world[0])
+    # masks on 2 of the 16 frames: the other frames' silhouettes against the empty backdrop carve the
+    # hull too, so the box stays around the plant instead of the cone two views leave behind it
+    import shutil
+
+    import zarr
+
+    from srfpipe.artifacts import reseal_artifact
+
+    two = [i in (0, 8) for i in range(16)]
+    sparse = []
+    for path in [m for m in order if m in masks]:
+        copy = workflow.root / "sparse" / Path(path).name
+        shutil.copytree(path, copy)
+        group = zarr.open_group(str(copy), mode="r+")
+        group.attrs["srfpipe"] = {**group.attrs["srfpipe"], "labelled": two}
+        reseal_artifact(copy)  # a deliberate edit: these masks now cover frames 0 and 8 only
+        sparse.append(str(copy))
+    composite_masks(results / "images.zarr", sparse, {}, workflow.root / "two.zarr", progress=False)
+    few = load_posed_images(results / "images.zarr", workflow.root / "two.zarr")
+    assert few.labelled.tolist() == two and few.bounds_source == "mask_hull"
+    assert read_provenance(workflow.root / "two.zarr")["hull_silhouettes"]["frames"] == 14
+    box = few.bounds_world
+    assert np.all(box[0] <= obj_lo + 1.0) and np.all(box[1] >= obj_hi - 1.0), (box, obj_lo, obj_hi)
+    assert np.prod(box[1] - box[0]) < 2.0 * np.prod(region[1] - region[0])
 
 
 def test_images_zarr_without_class_names_reads_as_an_orchard(tmp_path):

@@ -255,8 +255,22 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
         hull_mask = partial(_hull_mask, arrays, kept)
         background = resolve_background(frames, hull_mask, options["background"], bool(classes), labelled)
         update_attrs(group, **background)
-        update_attrs(group, **scene_bounds(frames, hull_mask, options["bounds"], bool(classes),
-                                           background["background"], labelled))
+        carving, carve_mask = labelled, hull_mask
+        if background["background"] == "empty" and classes and not labelled.all():
+            backdrop = ((background["background_spread"], background["backdrop_colour"])
+                        if background.get("backdrop_colour") is not None  # measured by labels.background auto
+                        else backdrop_statistics(frames, hull_mask, labelled))
+            if backdrop is not None:
+                spread, colour = backdrop
+                level = max(EMPTY_BACKGROUND_SPREAD, SILHOUETTE_SPREADS * spread)
+                carving, carve_mask = None, silhouette_hull_mask(frames, hull_mask, labelled, colour, level)
+                log.info("the %d frames without masks carve the hull by their silhouettes against the empty "
+                         "backdrop (colour %s, more than %.0f levels away)", int((~labelled).sum()),
+                         np.round(colour).astype(int).tolist(), level)
+                update_attrs(group, hull_silhouettes={"frames": int((~labelled).sum()), "backdrop_colour": colour,
+                                                      "level": level})
+        update_attrs(group, **scene_bounds(frames, carve_mask, options["bounds"], bool(classes),
+                                           background["background"], carving))
         update_attrs(group, classes=classes, class_values=dict(zip(classes, values)), names=names,
                      pixel_counts=pixel_counts, label_pixel_counts=label_pixel_counts,
                      dropped_classes=[] if keep_empty else empty, empty_classes=empty,
@@ -286,9 +300,10 @@ BACKGROUND_MARGIN = 0.025
 BACKGROUND_SAMPLES = 200_000
 
 
-def background_spread(frames: Frames, hull_mask, labelled: np.ndarray | None) -> float | None:
-    """90th percentile, over the labelled frames' pixels that no mask marks (nor comes near), of each
-    pixel's largest channel difference from their median colour (8-bit levels); None without any."""
+def backdrop_statistics(frames: Frames, hull_mask, labelled: np.ndarray | None) -> tuple[float, list[float]] | None:
+    """Over the labelled frames' pixels that no mask marks (nor comes near): the 90th percentile of
+    each pixel's largest channel difference from their median colour (8-bit levels), and that
+    median colour; None without any such pixel."""
     import cv2
 
     margin = max(1, int(round(BACKGROUND_MARGIN * max(frames.height, frames.width))))
@@ -302,7 +317,33 @@ def background_spread(frames: Frames, hull_mask, labelled: np.ndarray | None) ->
     pixels = np.concatenate(samples).astype(np.int16) if samples else np.zeros((0, 3), np.int16)
     if len(pixels) == 0:
         return None
-    return float(np.percentile(np.abs(pixels - np.median(pixels, axis=0)).max(axis=1), 90))
+    median = np.median(pixels, axis=0)
+    return float(np.percentile(np.abs(pixels - median).max(axis=1), 90)), median.tolist()
+
+
+# A frame without masks on an empty backdrop still shows where matter is: every pixel that is not
+# backdrop. Such a pixel differs from the backdrop's median colour by more than this many times the
+# backdrop's spread (and at least EMPTY_BACKGROUND_SPREAD levels) in some channel.
+SILHOUETTE_SPREADS = 3
+
+
+def silhouette_hull_mask(frames: Frames, hull_mask, labelled: np.ndarray, colour, level: float):
+    """`hull_mask` for the labelled frames; for the others, the pixels farther than `level` (8-bit
+    levels, in some channel) from the backdrop's `colour`.
+
+    With masks on a few frames only, those few carve the hull alone, and two or three views leave a
+    cone of space behind the object that agrees with every mask (on the built-in plant, 2 views
+    give a box 71x the object's). On an empty backdrop every frame's silhouette carves as well.
+    """
+    colour = np.asarray(colour, dtype=np.int16)
+
+    def mask(index: int) -> np.ndarray:
+        if labelled[index]:
+            return hull_mask(index)
+        image = np.asarray(frames.group["images"][index]).astype(np.int16)
+        return np.abs(image - colour).max(axis=-1) > level
+
+    return mask
 
 
 def resolve_background(frames: Frames, hull_mask, asked: str, has_classes: bool,
@@ -317,12 +358,14 @@ def resolve_background(frames: Frames, hull_mask, asked: str, has_classes: bool,
         return {"background": asked, "background_from": "config"}
     if not has_classes:
         return {"background": "scene", "background_from": "no classes"}
-    spread = background_spread(frames, hull_mask, labelled)
+    found = backdrop_statistics(frames, hull_mask, labelled)
+    spread = None if found is None else found[0]
     empty = spread is not None and spread <= EMPTY_BACKGROUND_SPREAD
     log.info("background %s: the unmasked pixels lie within %s levels of their median colour (90 %%; empty "
              "at most %d)", "empty" if empty else "a scene", "?" if spread is None else f"{spread:.0f}",
              EMPTY_BACKGROUND_SPREAD)
-    return {"background": "empty" if empty else "scene", "background_from": "images", "background_spread": spread}
+    return {"background": "empty" if empty else "scene", "background_from": "images", "background_spread": spread,
+            "backdrop_colour": None if found is None else found[1]}
 
 
 def scene_bounds(frames: Frames, hull_mask, policy: str, has_classes: bool, background: str = "scene",
@@ -338,7 +381,8 @@ def scene_bounds(frames: Frames, hull_mask, policy: str, has_classes: bool, back
     the masks carve one and the poses' bounds were estimated, else the model's box. It bounds the
     occupancy cache and the simulator, so that modelling a whole room does not grow them. Only
     the `labelled` frames (those with masks; default all) carve; `hull_mask(i)` gives frame i's
-    pixels that mark the hull.
+    pixels that mark the hull (on an empty backdrop, a frame without masks marks it by its
+    silhouette: silhouette_hull_mask).
     """
     from srfpipe.artifacts import meta
     from srfpipe.segment.hull import bounds_from_masks
@@ -349,7 +393,7 @@ def scene_bounds(frames: Frames, hull_mask, policy: str, has_classes: bool, back
     poses_bounds = np.asarray(info["bounds_world"], dtype=np.float64)
     poses_source = info.get("bounds_source") or "poses"
     kept = {"bounds_world": poses_bounds, "bounds_source": poses_source, "bounds_poses": poses_bounds,
-            "semantic_bounds_world": poses_bounds, "background": background}
+            "semantic_bounds_world": poses_bounds}
     trusted = poses_source in ("config", "ground_truth")
     if policy == "poses" or not has_classes or (policy == "auto" and trusted):
         return kept
