@@ -18,7 +18,7 @@ every 8th view held out):
 * orchard-lens  generated variant: the orchard rendered through an OpenCV lens with a phone's strong
                 tangential calibration (k1 -0.0024, k2 -0.021, p1 0.011, p2 0.0096) at 605 x 806.
 
-    python benchmarks/captures.py [--quick] [--workdir DIR] [--scenes NAME ...]
+    python benchmarks/captures.py [--quick] [--workdir DIR] [--scenes NAME ...] [--panel-only]
 
 A scene whose images shrink by another factor than 4 (images.downscale null keeps the plant's 18
 views at 256 px) is also measured on its held-out views at factor 4, the resolution earlier runs
@@ -271,15 +271,30 @@ def peers_by_scene() -> dict:
             for name in {*side_by_side, *nerfacto_alone}}
 
 
+def refresh_panel(path: Path) -> int:
+    """Rebuild captures.json's `panel` from its scenes and the current peers.json, building nothing:
+    nerfacto's numbers (peers.py --panel) are measured once, apart from srfpipe's runs."""
+    report = json.loads(path.read_text())
+    peers = peers_by_scene()
+    report["panel"] = {name: panel_entry(report["scenes"][name], peers.get(name, {}))
+                       for name in PANEL if name in report["scenes"]}
+    write_result(path, report)
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="60 s of training, no COLMAP refinement")
     parser.add_argument("--workdir", type=Path, default=REPO / "benchmarks" / "work" / "captures")
     parser.add_argument("--scenes", nargs="+", default=list(PANEL), choices=PANEL)
+    parser.add_argument("--panel-only", action="store_true",
+                        help="rebuild captures.json's panel from its scenes and peers.json (after peers.py --panel), build nothing")
     parser.add_argument("--snakemake-args", nargs=argparse.REMAINDER, default=[],
                         help="more Snakemake arguments (last), e.g. --rerun-triggers mtime to keep a "
                              "finished COLMAP refinement after a schema default changed")
     args = parser.parse_args()
+    if args.panel_only:
+        return refresh_panel(result_path("captures", args.quick))
     for name in args.scenes:
         source = (yaml.safe_load((REPO / "config" / "scenes" / f"{VARIANTS.get(name, (name,))[0]}.yaml").read_text())
                   .get("source", {}))
