@@ -128,6 +128,7 @@ def agreement(workdir: Path, steps: int, device: str, reference_only: bool = Fal
     from srfpipe.cameras import look_at
     from srfpipe.occupancy.grid import VoxelGrid
     from srfpipe.sim.baked import bake
+    from srfpipe.srf.metrics import psnr
     from srfpipe.srf.query import SemanticRadianceField
 
     devices = (device, "cpu")
@@ -156,19 +157,19 @@ def agreement(workdir: Path, steps: int, device: str, reference_only: bool = Fal
         renders[dev] = fields[dev].render(pose, np.array([120.0, 120.0, 80.0, 60.0]), 160, 120)
         walls[f"render_{dev}"] = time.perf_counter() - start
 
-    a, b = caches[device], caches["cpu"]
-    result["distill_compare"] = {key: {"differ_fraction": float(np.mean(np.asarray(a[key][...]) != np.asarray(b[key][...]))),
-                                       "count_device": int(np.count_nonzero(a[key][...])),
-                                       "count_cpu": int(np.count_nonzero(b[key][...]))}
-                                 for key in ("occupancy", "class_occupancy", "probability")}
+    result["distill_compare"] = {}
+    for key in ("occupancy", "class_occupancy", "probability"):
+        on_device, on_cpu = np.asarray(caches[device][key][...]), np.asarray(caches["cpu"][key][...])
+        result["distill_compare"][key] = {"differ_fraction": float(np.mean(on_device != on_cpu)),
+                                          "count_device": int(np.count_nonzero(on_device)),
+                                          "count_cpu": int(np.count_nonzero(on_cpu))}
     dense_d, dense_c = baked[device]["density"], baked["cpu"]["density"]
     result["bake_compare"] = {
         "density_rel_err_p99": float(np.quantile(np.abs(dense_d - dense_c) / np.maximum(dense_c, 1e-3), 0.99)),
         "occupied_device": int((dense_d > 0).sum()), "occupied_cpu": int((dense_c > 0).sum()),
         "rgb_max_abs": int(np.abs(baked[device]["rgb"].astype(int) - baked["cpu"]["rgb"].astype(int)).max())}
-    mse = float(np.mean((renders[device]["rgb"] - renders["cpu"]["rgb"]) ** 2))
     result["render_compare"] = {
-        "rgb_psnr_device_vs_cpu": -10 * np.log10(max(mse, 1e-12)),
+        "rgb_psnr_device_vs_cpu": psnr(renders[device]["rgb"], renders["cpu"]["rgb"]),
         "semantic_max_abs": float(np.abs(renders[device]["semantic"] - renders["cpu"]["semantic"]).max())}
     result["wall_seconds"] = walls
     return result
