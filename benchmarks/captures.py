@@ -63,6 +63,9 @@ VARIANTS = {
     "orchard-apple": ("orchard", {"segmentation": {"prompts": ["apple"]}}),
     "orchard-lens": ("orchard", {"orchard": {"width": 605, "height": 806, "distortion": PHONE_LENS}}),
 }
+# Variants whose images are another capture's: only the prompts differ, and nerfacto never sees the
+# masks, so it trains on the same images.zarr with the same split and its numbers are that capture's
+SAME_IMAGES = {"orchard-apple": "orchard"}
 FIVE_MINUTES = 300.0
 NERFACTO_MINUTES = (1, 2, 5, 10)  # the panel's nerfacto_psnr_{1,2,5,10}min (peers.py --panel)
 THIN_PART_PX = 5  # plant-small: parts thinner than this vanish from every third view's masks
@@ -254,6 +257,7 @@ def panel_entry(scene: dict, peers: dict) -> dict:
         # from this run's own 5-minute snapshot (peers.json's srfpipe runs used other presets and images)
         "srfpipe_psnr_5min": scene.get("psnr_5min"),
         "bounds_source": bounds.get("source"), "steps": scene.get("steps"),
+        **({"nerfacto_same_images_as": peers["same_images_as"]} if "same_images_as" in peers else {}),
     }
 
 
@@ -265,10 +269,14 @@ def peers_by_scene() -> dict:
     report = json.loads(path.read_text())
     side_by_side = {name: report[name] for name in report.get("scenes", []) if isinstance(report.get(name), dict)}
     nerfacto_alone = report.get("panel") or {}  # measured on the panel's own builds: these win
-    return {name: {"budgets": {b: {**((side_by_side.get(name) or {}).get("budgets", {}).get(b) or {}),
-                                   **((nerfacto_alone.get(name) or {}).get("budgets", {}).get(b) or {})}
-                               for b in (str(60 * minutes) for minutes in NERFACTO_MINUTES)}}
-            for name in {*side_by_side, *nerfacto_alone}}
+    peers = {name: {"budgets": {b: {**((side_by_side.get(name) or {}).get("budgets", {}).get(b) or {}),
+                                    **((nerfacto_alone.get(name) or {}).get("budgets", {}).get(b) or {})}
+                                for b in (str(60 * minutes) for minutes in NERFACTO_MINUTES)}}
+             for name in {*side_by_side, *nerfacto_alone}}
+    for name, same in SAME_IMAGES.items():
+        if name not in peers and same in peers:
+            peers[name] = {**peers[same], "same_images_as": same}
+    return peers
 
 
 def refresh_panel(path: Path) -> int:
