@@ -19,8 +19,9 @@ OUT = REPO / "config" / "README.md"
 INTRO = """# Configuration
 
 This file is generated from `workflow/schemas/*.schema.yaml` by `python scripts/config_docs.py`;
-edit the schemas, not this file. Config is validated when Snakemake starts: an error names the file
-and the key. Keys left out take the defaults below.
+edit the schemas, not this file (and run `python scripts/generate_settings.py` too: code reads a
+section through its typed view in `srfpipe/settings.py`). Config is validated when Snakemake
+starts: an error names the file and the key. Keys left out take the defaults below.
 
 * `config/config.yaml`: which scenes to build and where results go.
 * `config/scenes/<scene>.yaml`: one file per scene. Drop a file in to add a scene; build it with

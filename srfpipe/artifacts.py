@@ -677,6 +677,18 @@ def require_input(artifact: str | Path, given: str | Path, stage: str) -> None:
                 " / ".join(unprinted))
 
 
+def recorded_input(artifact: str | Path, stage: str) -> Path | None:
+    """The path `artifact` records as its input of stage `stage` (the first), or None."""
+    try:
+        attrs = read_provenance(Path(artifact))
+    except Exception:  # open_artifact reports an unreadable artifact in its own words
+        return None
+    for entry in attrs.get("inputs") or []:
+        if isinstance(entry, dict) and entry.get("stage") == stage and isinstance(entry.get("path"), str):
+            return Path(entry["path"])
+    return None
+
+
 def check_inputs_match(artifact: str | Path, given: dict[str, str | Path | None]) -> None:
     """`require_input(artifact, path, stage)` for each stage -> path of `given` (None: not given)."""
     for stage, path in given.items():

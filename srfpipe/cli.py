@@ -10,6 +10,7 @@ import argparse
 import importlib
 import logging
 import sys
+from pathlib import Path
 
 # (subcommand, module, one-line help). Order follows the data flow.
 STAGES = [
@@ -58,7 +59,34 @@ def stage_paths(parser: argparse.ArgumentParser, args) -> tuple[list[tuple[str, 
                 continue  # the stage reports it
             if isinstance(source, dict) and isinstance(source.get("path"), str):
                 inputs.append((f"{option} path", source["path"]))
-    return outputs, inputs
+    return outputs, inputs + scene_file_paths(getattr(args, "stage", None), getattr(args, "scene", None))
+
+
+# The folders a stage reads through its --scene file rather than a path argument
+SCENE_FILE_INPUTS = {"poses": [("source", "path")], "frames": [("source", "path")],
+                     "segment": [("segmentation", "import", "path")]}
+
+
+def scene_file_paths(stage: str | None, scene_file: str | None) -> list[tuple[str, str]]:
+    """The folders `stage` reads through its scene file (the capture, imported masks), as (where,
+    path): inputs as much as its path arguments are. A file that does not parse is left to the
+    stage, which reports it."""
+    import yaml
+
+    if not scene_file or stage not in SCENE_FILE_INPUTS:
+        return []
+    try:
+        scene = yaml.safe_load(Path(scene_file).read_text())
+    except (OSError, yaml.YAMLError):
+        return []
+    found = []
+    for where in SCENE_FILE_INPUTS[stage]:
+        value = scene
+        for key in where:
+            value = value.get(key) if isinstance(value, dict) else None
+        if isinstance(value, str):
+            found.append((f"--scene {scene_file} {'.'.join(where)}", value))
+    return found
 
 
 def refuse_output_over_input(parser: argparse.ArgumentParser, args) -> None:

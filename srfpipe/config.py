@@ -86,7 +86,7 @@ def validate_scene(scene: dict, source: str = "<scene>", whole: bool = False) ->
 def apply_preset(scene: dict) -> None:
     """Fill in the values of the scene's `preset` (workflow/schemas/presets.yaml) for every key the
     scene does not set itself; an unknown preset is left for the schema to report."""
-    name = scene.get("preset", "balanced")
+    name = scene.get("preset", load_schema()["properties"]["preset"]["default"])
     if not isinstance(name, str):
         return
     for section, values in (load_schema("presets.yaml").get(name) or {}).items():
@@ -169,6 +169,80 @@ def section_defaults(section: str) -> dict:
     return validate_scene({section: {}})[section]
 
 
+class SettingsSection:
+    """Base of the typed settings in srfpipe/settings.py (one frozen dataclass per schema section).
+
+    Fields are the section's keys (a Python keyword gets a trailing underscore and records the
+    key in its metadata); a nested section's field holds its own dataclass. Arrays are tuples.
+    """
+
+    SECTION = ""
+
+    @classmethod
+    def from_section(cls, values: dict):
+        """From a section that validation already filled in (`validate_scene`)."""
+        import dataclasses
+
+        known = {f.metadata.get("key", f.name): f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - set(known))
+        if unknown:
+            raise ConfigError(f"{cls.SECTION}: unknown keys {unknown}")
+        kwargs = {}
+        for key, value in values.items():
+            f = known[key]
+            nested = f.metadata.get("section")
+            kwargs[f.name] = nested.from_section(value) if nested else _frozen(value)
+        return cls(**kwargs)
+
+    @classmethod
+    def from_options(cls, options):
+        """From raw section values (or settings already built): validated, defaults filled in."""
+        if isinstance(options, cls):
+            return options
+        path = cls.SECTION.split(".")
+        scene: dict = {}
+        inner = scene
+        for part in path[:-1]:
+            inner = inner.setdefault(part, {})
+        inner[path[-1]] = dict(options or {})
+        section = validate_scene(scene, f"the {cls.SECTION} options")
+        for part in path:
+            section = section[part]
+        return cls.from_section(section)
+
+    def as_dict(self) -> dict:
+        """The section as the schema spells it (keys, lists): what provenance records."""
+        import dataclasses
+
+        out = {}
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if value is None and f.metadata.get("unset"):  # a key without a default that was not set
+                continue
+            out[f.metadata.get("key", f.name)] = value.as_dict() if isinstance(value, SettingsSection) else _thawed(value)
+        return out
+
+    def replace(self, **changes):
+        """A copy with some fields changed (the capture-dependent defaults a stage resolves)."""
+        import dataclasses
+
+        return dataclasses.replace(self, **{k: _frozen(v) for k, v in changes.items()})
+
+
+def _frozen(value):
+    if isinstance(value, list):
+        return tuple(_frozen(v) for v in value)
+    return value
+
+
+def _thawed(value):
+    if isinstance(value, tuple):
+        return [_thawed(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _thawed(v) for k, v in value.items()}
+    return value
+
+
 def add_options_arguments(parser, section: str) -> None:
     """`--scene FILE` and `--options JSON`: how every stage CLI receives its section's values."""
     parser.add_argument(
@@ -181,17 +255,22 @@ def add_options_arguments(parser, section: str) -> None:
     )
 
 
-def stage_options(args, section: str) -> dict:
-    """Defaults <- scene file section <- --options JSON, validated against the schema."""
+def json_object_flag(text: str | None, flag: str) -> dict:
+    """The JSON object a CLI flag holds (`--options`, `--source`), or a ConfigError naming the flag."""
     import json
 
+    try:
+        value = json.loads(text or "{}")
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{flag}: not valid JSON ({exc})") from exc
+    if not isinstance(value, dict):
+        raise ConfigError(f"{flag}: must be a JSON object")
+    return value
+
+
+def stage_options(args, section: str) -> dict:
+    """Defaults <- scene file section <- --options JSON, validated against the schema."""
     scene = load_scene(args.scene) if getattr(args, "scene", None) else validate_scene({})
     values = dict(scene.get(section, {}))
-    try:
-        overrides = json.loads(args.options or "{}")
-    except json.JSONDecodeError as exc:
-        raise ConfigError(f"--options: not valid JSON ({exc})") from exc
-    if not isinstance(overrides, dict):
-        raise ConfigError("--options: must be a JSON object")
-    values.update(overrides)
+    values.update(json_object_flag(args.options, "--options"))
     return validate_scene({section: values}, "--options")[section]

@@ -141,12 +141,6 @@ def default_supersample(width: int, height: int, asked: int | None) -> int:
 # (the views it was fitted to look right, a new viewpoint does not): issue 30's threshold.
 GENERALIZATION_GAP_DB = 6.0
 
-# training views rendered for the generalization check when evaluate.train_views is not given
-DEFAULT_TRAIN_VIEWS = 3
-
-# unlabelled training views scored against ground truth when evaluate.unlabelled_views is not given
-DEFAULT_UNLABELLED_VIEWS = 8
-
 
 def train_view_choice(train: np.ndarray, count: int) -> np.ndarray:
     """`count` of the training views `train`, evenly spaced (the centres of `count` equal parts of
@@ -175,10 +169,11 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
     to the world through `data`'s own scene frame, so a field of another build measures them too); `labels`
     and `srf` are the paths the data and the field came from (for messages and the record).
     `curves`, srf.zarr's (curve, eval_curve), adds the training curve (`training_curve.svg`).
-    `options["train_views"]` training views (default DEFAULT_TRAIN_VIEWS) are rendered the same way
+    `options` is the `evaluate` section (holdout_every: the field's when not given).
+    `evaluate.train_views` training views are rendered the same way
     for `train_view_psnr`, `generalization_gap_db` and `overfit` (see GENERALIZATION_GAP_DB).
     When some training frames had no masks (sparse labels) and the capture has ground truth,
-    `options["unlabelled_views"]` of them (default DEFAULT_UNLABELLED_VIEWS) are scored against it:
+    `evaluate.unlabelled_views` of them are scored against it:
     `iou_unlabelled_gt`, `miou_unlabelled_gt` (how far the field spread the labels it was given).
     """
     from srfpipe.figures import metrics_html, training_curve_svg
@@ -194,16 +189,20 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
         raise ValueError(f"{labels}: missing array 'label' (the composited label image)")
     if list(data.classes) != list(field.classes):
         raise ValueError(f"{labels}: classes {data.classes} differ from the SRF's {field.classes} ({srf})")
-    holdout = int(options.get("holdout_every", field.attrs.get("holdout_every", 8)))
+    from srfpipe.settings import EvaluateSettings
+
+    settings = EvaluateSettings.from_options(
+        {"holdout_every": field.attrs.get("holdout_every", EvaluateSettings.holdout_every), **options})
+    holdout = settings.holdout_every
     if holdout != int(field.attrs.get("holdout_every", holdout)):
         raise ValueError(
             f"{srf}: trained with holdout_every={field.attrs.get('holdout_every')}, evaluate asks for {holdout}"
         )
     train, heldout = split_views(data.count, holdout)
-    train_chosen = train_view_choice(train, options.get("train_views", DEFAULT_TRAIN_VIEWS))
+    train_chosen = train_view_choice(train, settings.train_views)
     unlabelled = train[:0] if data.labelled is None else train[~data.labelled[train]]
-    unlabelled_chosen = train_view_choice(unlabelled, options.get("unlabelled_views", DEFAULT_UNLABELLED_VIEWS))
-    supersample = default_supersample(data.width, data.height, options.get("supersample"))
+    unlabelled_chosen = train_view_choice(unlabelled, settings.unlabelled_views)
+    supersample = default_supersample(data.width, data.height, settings.supersample)
 
     def render_view(index):
         """The render of view `index` and its captured image (float64 in [0, 1])."""

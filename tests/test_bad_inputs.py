@@ -693,7 +693,8 @@ def test_training_that_diverges_stops_and_writes_nothing(tmp_path):
     """train.lr 1e6 trained to the end and wrote srf.zarr without a word (its semantic loss reached
     1e5..1e14 and never became NaN here); now the first logging step that sees a non-finite or
     exploded loss (or a non-finite parameter) stops it, naming the step, the term and the rate."""
-    from srfpipe.srf.trainer import TrainingDiverged, train
+    from srfpipe.srf.hooks import TrainingDiverged
+    from srfpipe.srf.trainer import train
     from tests.test_train import tiny_options
 
     images, labels = _tiny_train_scene(tmp_path)
@@ -710,21 +711,19 @@ def test_training_that_diverges_stops_and_writes_nothing(tmp_path):
 @pytest.mark.hostile
 def test_a_non_finite_loss_term_is_named_with_its_first_step(tmp_path, monkeypatch):
     from srfpipe.srf import losses
-    from srfpipe.srf.trainer import TrainingDiverged, train
+    from srfpipe.srf.hooks import TrainingDiverged
+    from srfpipe.srf.trainer import train
     from tests.test_train import tiny_options
 
-    real = losses.total_loss
+    real = losses.semantic_loss
     calls = []
 
     def semantic_goes_nan(*args, **kwargs):
-        parts = real(*args, **kwargs)
+        value = real(*args, **kwargs)
         calls.append(1)
-        if len(calls) == 7:  # step 7: the semantic term alone is NaN
-            parts["semantic"] = parts["semantic"] * float("nan")
-            parts["loss"] = parts["photometric"] + parts["semantic"]
-        return parts
+        return value * float("nan") if len(calls) == 7 else value  # step 7: the semantic term alone is NaN
 
-    monkeypatch.setattr(losses, "total_loss", semantic_goes_nan)
+    monkeypatch.setattr(losses, "semantic_loss", semantic_goes_nan)
     images, labels = _tiny_train_scene(tmp_path)
     out = tmp_path / "srf.zarr"
     assert_refused(lambda: train(images, labels, out, tiny_options(iterations=30, log_every=5, checkpoint_every=0),
@@ -744,7 +743,10 @@ def test_a_non_finite_loss_term_is_named_with_its_first_step(tmp_path, monkeypat
     (["distill", "--srf", "{poses}", "--out", "{root}"], r"--out \S+ holds the input --srf \S+poses.zarr"),
     (["poses", "--source", '{{"format": "nerfstudio", "path": "{root}/cap"}}', "--out", "{root}/cap"],
      r"--out \S+cap is the input --source path \S+cap"),
-], ids=["downscale_same", "downscale_dotted", "segment_inside", "train_metrics_log", "distill_holds", "poses_source"])
+    (["poses", "--scene", "{root}/scene.yaml", "--out", "{root}/cap/poses.zarr"],
+     r"--out \S+poses.zarr lies inside the input --scene \S+scene.yaml source.path \S+cap"),
+], ids=["downscale_same", "downscale_dotted", "segment_inside", "train_metrics_log", "distill_holds", "poses_source",
+        "poses_scene_file"])
 def test_stage_cli_refuses_an_output_over_its_input(tmp_path, capsys, argv, how):
     """`srfpipe downscale --out X --poses X` replaced the poses with images; every stage now refuses
     an output that is, lies inside or holds one of its inputs, before anything runs."""
@@ -752,6 +754,8 @@ def test_stage_cli_refuses_an_output_over_its_input(tmp_path, capsys, argv, how)
 
     root = capture(tmp_path / "cap")
     poses = import_poses(NERFSTUDIO, root, {}, tmp_path / "poses.zarr", progress=False)
+    # the capture path given only inside a scene file is an input too
+    (tmp_path / "scene.yaml").write_text(f"source: {{format: nerfstudio, path: '{root}'}}\n")
     before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
     code = main([a.format(poses=poses, root=tmp_path) for a in argv])
     err = capsys.readouterr().err

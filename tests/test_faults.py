@@ -114,7 +114,7 @@ def test_full_or_read_only_disk_gives_one_clear_line_and_no_partial_artifact(tmp
 def test_checkpoint_on_a_full_disk_leaves_no_temporary_file(tmp_path):
     import torch
 
-    from srfpipe.srf.trainer import save_checkpoint
+    from srfpipe.srf.hooks import save_checkpoint
 
     with mounted(tmp_path / "disk", size="64k"):
         folder = tmp_path / "disk" / "srf.ckpt"

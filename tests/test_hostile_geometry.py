@@ -109,6 +109,25 @@ def test_grid_larger_than_memory_is_refused_naming_the_key(monkeypatch):
         build_model_config({"max_resolution": 1024, "default_cells": 1024}, bounds, scene, ["a"], 4)
     config = build_model_config({"max_resolution": 64, "default_cells": 64}, bounds, scene, ["a"], 4)
     assert config["inner"]["resolution"] == [64, 64, 64]
+    # a step's batch: every ray holds all its candidate intervals before the occupancy grid culls them
+    with pytest.raises(MemoryEstimateError, match=r"train.rays_per_batch: a batch of 50000000 rays of \d+ candidate "
+                                                  r"intervals each needs about [\d.]+ GB, more than the 1 GB"):
+        build_model_config({"rays_per_batch": 50_000_000, "default_cells": 64}, bounds, scene, ["a"], 4)
+
+
+def test_whole_grid_distance_larger_than_memory_is_refused_naming_the_key(monkeypatch):
+    """package's whole-grid signed distance: a distance transform's working arrays are checked first."""
+    from srfpipe.occupancy.distill import signed_distance_field
+    from srfpipe.occupancy.grid import VoxelGrid
+
+    monkeypatch.setenv("SRFPIPE_MAX_MEMORY_GB", "0.01")
+    grid = VoxelGrid((0.0, 0.0, 0.0), 0.01, (100, 100, 100))
+    occupied = np.zeros(grid.shape, dtype=bool)
+    with pytest.raises(MemoryEstimateError, match=r"occupancy.voxels_across: the signed distance over the whole "
+                                                  r"100 x 100 x 100 voxel grid .* needs about [\d.]+ GB"):
+        signed_distance_field(occupied, grid, truncation=0.05)
+    monkeypatch.setenv("SRFPIPE_MAX_MEMORY_GB", "1")
+    assert signed_distance_field(occupied, grid, truncation=0.05).shape == grid.shape
 
 
 def test_ray_cast_from_far_away_ends_and_hits(tmp_path):

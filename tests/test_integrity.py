@@ -497,4 +497,7 @@ def test_package_refuses_a_field_the_cache_was_not_distilled_from(two_scenes):
                                                       f"was distilled from")
     with pytest.raises(ArtifactError, match=re.escape(f"{images_b}: not the images srf.zarr ({srf_a}) was trained on")):
         package(occupancy, srf_a, root / "sim_ab", {}, images_path=images_b)
-    assert not (root / "sim_b").exists() and not (root / "sim_ab").exists()
+    # no field given: the images are still checked through the field the cache records
+    with pytest.raises(ArtifactError, match=re.escape(f"{images_b}: not the images srf.zarr ({srf_a}) was trained on")):
+        package(occupancy, None, root / "sim_nb", {}, images_path=images_b)
+    assert not any((root / name).exists() for name in ("sim_b", "sim_ab", "sim_nb"))

@@ -286,13 +286,13 @@ def test_appearance_is_on_by_default_for_real_captures_only():
     real.bounds_source = "points"
     generated = camera_ring_data(100.0)
     generated.gt_label, generated.bounds_source = np.zeros((1, 2, 2)), "ground_truth"
-    assert resolve_data_defaults({"appearance_dim": None}, real)["appearance_dim"] == 8
-    assert resolve_data_defaults({"appearance_dim": None}, generated)["appearance_dim"] == 0
-    assert resolve_data_defaults({"appearance_dim": 4}, real)["appearance_dim"] == 4
+    assert resolve_data_defaults({"appearance_dim": None}, real).appearance_dim == 8
+    assert resolve_data_defaults({"appearance_dim": None}, generated).appearance_dim == 0
+    assert resolve_data_defaults({"appearance_dim": 4}, real).appearance_dim == 4
     # estimated bounds start clearer (less fog to fit the views with) than known ones
-    assert resolve_data_defaults({"initial_opacity": None}, real)["initial_opacity"] == 0.001
-    assert resolve_data_defaults({"initial_opacity": None}, generated)["initial_opacity"] == 0.01
-    assert resolve_data_defaults({"initial_opacity": 0.05}, real)["initial_opacity"] == 0.05
+    assert resolve_data_defaults({"initial_opacity": None}, real).initial_opacity == 0.001
+    assert resolve_data_defaults({"initial_opacity": None}, generated).initial_opacity == 0.01
+    assert resolve_data_defaults({"initial_opacity": 0.05}, real).initial_opacity == 0.05
 
 
 def test_background_penalty_only_where_the_capture_says_its_background_is_empty():
@@ -302,15 +302,15 @@ def test_background_penalty_only_where_the_capture_says_its_background_is_empty(
 
     scene = camera_ring_data(100.0)
     scene.classes, scene.bounds_source = ["apple"], "mask_hull"
-    assert resolve_data_defaults({"background_opacity": None}, scene)["background_opacity"] == 0.0
+    assert resolve_data_defaults({"background_opacity": None}, scene).background_opacity == 0.0
     scene.background_empty = True
-    assert resolve_data_defaults({"background_opacity": None}, scene)["background_opacity"] == EMPTY_BACKGROUND_OPACITY
+    assert resolve_data_defaults({"background_opacity": None}, scene).background_opacity == EMPTY_BACKGROUND_OPACITY
     scene.classes = []  # nothing marks what is not background
-    assert resolve_data_defaults({"background_opacity": None}, scene)["background_opacity"] == 0.0
+    assert resolve_data_defaults({"background_opacity": None}, scene).background_opacity == 0.0
 
 
 def test_progress_bar_counts_seconds_of_a_time_budget():
-    from srfpipe.srf.trainer import TrainingProgress
+    from srfpipe.srf.hooks import TrainingProgress
 
     bar = TrainingProgress(0, 3000, 0.0, time_budget=600)
     bar.advance(10, 12.5)
@@ -350,10 +350,10 @@ def test_grid_follows_the_pixels_a_cell_covers(focal, cells, levels):
     data = camera_ring_data(focal)
     assert pixels_per_cell(data, 96) == pytest.approx(focal / 144.0, rel=1e-3)
     options = resolve_data_defaults(section_defaults("train"), data)
-    assert (options["default_cells"], options["grid_levels"]) == (cells, levels)
-    assert options["features"] == (16 if levels == 1 else 8)
+    assert (options.default_cells, options.grid_levels) == (cells, levels)
+    assert options.features == (16 if levels == 1 else 8)
     chosen = resolve_data_defaults(dict(section_defaults("train"), default_cells=64), data)
-    assert (chosen["default_cells"], chosen["grid_levels"]) == (64, 1)  # the scene's own grid stays
+    assert (chosen.default_cells, chosen.grid_levels) == (64, 1)  # the scene's own grid stays
 
 
 def test_a_small_object_gets_its_share_of_every_batch_and_a_large_one_changes_nothing():

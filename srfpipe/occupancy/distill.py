@@ -207,10 +207,22 @@ def signed_distance_brick(occupancy_array, channel: int, grid: VoxelGrid, zyx, t
     return np.clip(d, -truncation, truncation).astype(np.float32)
 
 
+# Bytes per voxel of a distance transform over a whole grid: scipy's EDT keeps a feature transform
+# (3 int32) and the float64 distances, and the signed field adds the mask, the crop and the result
+EDT_BYTES_PER_VOXEL = 40
+
+
 def signed_distance_field(occupied: np.ndarray, grid: VoxelGrid, truncation: float) -> np.ndarray:
     """Signed distance over the whole grid to the surface of one (z, y, x) occupancy, as the cache's
     `distance` array holds it per class: float32 world units, negative inside, clipped to
     +-truncation, +truncation everywhere when nothing is occupied (outside the grid is free)."""
+    from srfpipe.memory import check_allocation
+
+    halo = int(math.ceil(truncation / grid.voxel_size)) + 1
+    voxels = math.prod(n + 2 * halo for n in grid.shape)
+    check_allocation(voxels * EDT_BYTES_PER_VOXEL, "occupancy.voxels_across",
+                     f"the signed distance over the whole {' x '.join(map(str, grid.shape))} voxel grid (with a "
+                     f"halo of {halo})")
     whole = tuple(slice(0, n) for n in grid.shape)
     d = signed_distance_brick(np.asarray(occupied, dtype=bool)[None], 0, grid, whole, truncation)
     return np.full(grid.shape, truncation, np.float32) if d is None else d

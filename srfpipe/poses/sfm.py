@@ -40,6 +40,7 @@ import numpy as np
 
 from srfpipe.poses.capture import Capture, check_image_file, orthonormalize, read_image_size, resolve_inside
 from srfpipe.poses.colmap import colmap_camera_parameters
+from srfpipe.settings import PosesSettings
 
 log = logging.getLogger(__name__)
 
@@ -412,9 +413,9 @@ def read_images(path: str | Path, source: dict, options: dict, threads: int = -1
                 workdir_parent: str | Path | None = None) -> Capture:
     """`source.format: images`: the folder's photos, posed by structure from motion."""
     root, image_paths = list_images(Path(path), source.get("images_dir"), source.get("allowed_roots") or ())
-    result = run_sfm(root, image_paths, video=False, matcher=options.get("matcher", "auto"),
-                     camera_model=options.get("camera_model"), threads=threads, workdir_parent=workdir_parent,
-                     min_images=options.get("min_images", 2))
+    poses = PosesSettings.from_options(options)
+    result = run_sfm(root, image_paths, video=False, matcher=poses.matcher, camera_model=poses.camera_model,
+                     threads=threads, workdir_parent=workdir_parent, min_images=poses.min_images)
     return _capture(root, image_paths, result, "images", root, {})
 
 
@@ -433,9 +434,9 @@ def read_video(path: str | Path, source: dict, options: dict, threads: int = -1,
     elif not (path / FRAMES_FILE).is_file():
         raise FileNotFoundError(f"{path}: neither a video file nor a frames folder (no {FRAMES_FILE})")
     image_paths, record = read_frames(path, source.get("allowed_roots") or ())
-    result = run_sfm(path, image_paths, video=True, matcher=options.get("matcher", "auto"),
-                     camera_model=options.get("camera_model"), threads=threads, workdir_parent=workdir_parent,
-                     min_images=options.get("min_images", 2))
+    poses = PosesSettings.from_options(options)
+    result = run_sfm(path, image_paths, video=True, matcher=poses.matcher, camera_model=poses.camera_model,
+                     threads=threads, workdir_parent=workdir_parent, min_images=poses.min_images)
     frames = [record["frames"][i] for i in result.indices]
     extra = {
         "video": {key: record.get(key) for key in ("video", "fps", "frame_size", "n_video_frames", "max_frames",

@@ -10,7 +10,6 @@ dispatches to them, and the only module of the package that the CLI runs.
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import replace
 from pathlib import Path
@@ -18,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from srfpipe import cameras
-from srfpipe.config import ConfigError, add_options_arguments, stage_options, validate_scene
+from srfpipe.config import ConfigError, add_options_arguments, json_object_flag, stage_options, validate_scene
 from srfpipe.poses.align import perturb_poses, up_alignment
 from srfpipe.poses.blender import read_blender
 from srfpipe.poses.bounds import resolve_bounds
@@ -29,6 +28,7 @@ from srfpipe.poses.geometry import check_cameras_see_bounds, check_scene_bounds
 from srfpipe.poses.ground_truth import attach_ground_truth
 from srfpipe.poses.llff import read_llff
 from srfpipe.poses.nerfstudio import read_nerfstudio
+from srfpipe.settings import SourceSettings
 
 log = logging.getLogger(__name__)
 
@@ -99,8 +99,8 @@ def import_poses(source: dict, capture_dir: str | Path | None, options: dict, ou
     from srfpipe.artifacts import create_artifact
 
     source = dict(source)
-    where = capture_dir if capture_dir is not None else source.get("path", "source")
-    if source.get("format", "orchard") not in FORMATS:
+    where = capture_dir if capture_dir is not None else source.get("path") or "source"
+    if source.get("format", SourceSettings.format) not in FORMATS:
         raise ValueError(f"{where}: unknown capture format {source.get('format')!r} "
                          f"(expected one of {', '.join(FORMATS)})")
     if capture_dir is not None:
@@ -114,7 +114,7 @@ def import_poses(source: dict, capture_dir: str | Path | None, options: dict, ou
     check_enough_images(capture, options["min_images"])
     log.info("imported %d images (%s) from %s", len(capture), capture.source_format, capture.source_file)
     up_rotation = None
-    if options.get("up", "none") == "auto":
+    if options.get("up") == "auto":  # no default: absent is off
         if capture.ground_truth is not None:
             raise ConfigError(f"{capture.source_file}: poses.up auto would turn the world away from the frame of "
                               f"its ground truth ({capture.ground_truth})")
@@ -203,12 +203,6 @@ def run(args) -> int:
     options = stage_options(args, "poses")
     source = dict(load_scene(args.scene)["source"]) if args.scene else {}
     if args.source:
-        try:
-            override = json.loads(args.source)
-        except json.JSONDecodeError as exc:
-            raise ConfigError(f"--source: not valid JSON ({exc})") from exc
-        if not isinstance(override, dict):
-            raise ConfigError("--source: must be a JSON object")
-        source.update(override)
+        source.update(json_object_flag(args.source, "--source"))
     import_poses(source, args.capture, options, args.out, threads=args.threads)
     return 0

@@ -27,7 +27,7 @@ import numpy as np
 from srfpipe.config import stage_options, validate_scene
 from srfpipe.scenes.capture import add_generator_arguments, intrinsics_for, ring_poses, write_capture
 from srfpipe.scenes.raycast import (
-    Lighting, Part, Renderer, _mix, fbm, leaf_albedo, light_direction, spots, value_noise,
+    Lighting, Part, Renderer, mix_colours, fbm, leaf_albedo, light_direction, spots, value_noise,
 )
 from srfpipe.scenes.sapling import TRIANGLES_PER_LEAF, build_sapling
 from srfpipe.scenes.tree import UNIT_SPHERE
@@ -52,16 +52,16 @@ BACKDROP_MOTTLE = 8.0  # noise cells per radian of view direction: a soft grade 
 def stem_albedo(x: np.ndarray, height: float, seed: int, footprint=None) -> np.ndarray:
     """Green young wood, browner towards the base, with fine lengthwise streaks (frequencies per mm)."""
     woody = np.clip(1.0 - x[:, 2] / (0.6 * height), 0.0, 1.0)
-    base = _mix([0.16, 0.30, 0.07], [0.30, 0.20, 0.11], woody)
+    base = mix_colours([0.16, 0.30, 0.07], [0.30, 0.20, 0.11], woody)
     streaks = fbm(x * np.array([1.0, 1.0, 0.2], np.float32), 0.6, seed + 41, octaves=2, footprint=footprint)
     return base * (0.6 + 0.8 * streaks)[:, None]
 
 
 def berry_albedo(x: np.ndarray, hue: np.ndarray, seed: int, footprint=None) -> np.ndarray:
     """Scarlet to orange per berry (hue in [0, 1]) with pale lenticel dots (frequencies per mm)."""
-    albedo = _mix([0.62, 0.03, 0.03], [0.80, 0.28, 0.02], hue)
+    albedo = mix_colours([0.62, 0.03, 0.03], [0.80, 0.28, 0.02], hue)
     albedo = albedo * (0.85 + 0.3 * fbm(x, 0.4, seed + 51, octaves=2, footprint=footprint))[:, None]
-    return _mix(albedo, [0.85, 0.70, 0.45], spots(x, 1.2, seed + 52, 0.06, footprint))
+    return mix_colours(albedo, [0.85, 0.70, 0.45], spots(x, 1.2, seed + 52, 0.06, footprint))
 
 
 def backdrop(seed: int):

@@ -91,7 +91,7 @@ def fbm(points: np.ndarray, frequency: float, seed: int, octaves: int = 3, footp
 # ----------------------------------------------------------------------------- materials
 
 
-def _mix(a, b, t):
+def mix_colours(a, b, t):
     t = np.asarray(t, np.float32)[:, None]
     return (1.0 - t) * np.asarray(a, np.float32) + t * np.asarray(b, np.float32)
 
@@ -120,29 +120,29 @@ GROUND_SPOTS = [
 def ground_albedo(x: np.ndarray, seed: int, footprint=None) -> np.ndarray:
     """Grass with bare-soil patches, fine speckle, pale flowers and dark clods."""
     patches = np.clip((fbm(x, 0.6, seed + 1) - 0.42) * 4.0, 0.0, 1.0)
-    grass = _mix([0.20, 0.36, 0.10], [0.36, 0.46, 0.16], fbm(x, 3.0, seed + 2))
-    soil = _mix([0.30, 0.22, 0.14], [0.48, 0.38, 0.26], fbm(x, 4.0, seed + 3))
-    albedo = _mix(grass, soil, patches)
+    grass = mix_colours([0.20, 0.36, 0.10], [0.36, 0.46, 0.16], fbm(x, 3.0, seed + 2))
+    soil = mix_colours([0.30, 0.22, 0.14], [0.48, 0.38, 0.26], fbm(x, 4.0, seed + 3))
+    albedo = mix_colours(grass, soil, patches)
     detail = fbm(x, 10.0, seed + 4, octaves=4, footprint=footprint)
     albedo = albedo * (0.4 + 1.2 * detail)[:, None]
     # blobs at several scales, so every distance from the cameras has features SIFT can match
     for k, (frequency, colour) in enumerate(GROUND_SPOTS):
-        albedo = _mix(albedo, colour, spots(x, frequency, seed + 5 + k, 0.05, footprint))
+        albedo = mix_colours(albedo, colour, spots(x, frequency, seed + 5 + k, 0.05, footprint))
     return albedo
 
 
 def branch_albedo(x: np.ndarray, seed: int, footprint=None) -> np.ndarray:
     """Grey-brown bark with fine, high-contrast cracks, pale lichen and dark knots."""
-    base = _mix([0.22, 0.15, 0.09], [0.42, 0.33, 0.24], fbm(x, 6.0, seed + 11, octaves=2))
+    base = mix_colours([0.22, 0.15, 0.09], [0.42, 0.33, 0.24], fbm(x, 6.0, seed + 11, octaves=2))
     detail = fbm(x, 25.0, seed + 12, octaves=3, footprint=footprint)
     albedo = base * (0.4 + 1.2 * detail)[:, None]
-    albedo = _mix(albedo, [0.62, 0.66, 0.52], spots(x, 14.0, seed + 13, 0.12, footprint))
-    return _mix(albedo, [0.06, 0.04, 0.03], spots(x, 20.0, seed + 14, 0.08, footprint))
+    albedo = mix_colours(albedo, [0.62, 0.66, 0.52], spots(x, 14.0, seed + 13, 0.12, footprint))
+    return mix_colours(albedo, [0.06, 0.04, 0.03], spots(x, 20.0, seed + 14, 0.08, footprint))
 
 
 def leaf_albedo(x: np.ndarray, tint: np.ndarray, seed: int, footprint=None) -> np.ndarray:
     """Green, varied per leaf (tint in [0, 1] from dark bluish to light yellowish), faint veins."""
-    base = _mix([0.07, 0.25, 0.05], [0.32, 0.52, 0.12], tint)
+    base = mix_colours([0.07, 0.25, 0.05], [0.32, 0.52, 0.12], tint)
     detail = fbm(x, 40.0, seed + 21, octaves=2, footprint=footprint)
     return base * (0.7 + 0.6 * detail)[:, None]
 
@@ -152,7 +152,7 @@ def apple_albedo(x, ripeness, centre, seed: int, footprint=None) -> np.ndarray:
     local = (x - centre) * np.array([1.0, 1.0, 0.25], np.float32)  # streaks run top to bottom
     streak = fbm(local + centre, 35.0, seed + 31, octaves=2, footprint=footprint)
     red = np.clip(ripeness + 0.8 * (streak - 0.5), 0.0, 1.0)
-    albedo = _mix([0.62, 0.68, 0.18], [0.70, 0.07, 0.06], red)
+    albedo = mix_colours([0.62, 0.68, 0.18], [0.70, 0.07, 0.06], red)
     dots = fbm(x, 150.0, seed + 32, octaves=1, footprint=footprint)
     return albedo * (0.8 + 0.4 * dots)[:, None]
 
@@ -212,7 +212,7 @@ def light_direction(rng: np.random.Generator, elevation_range_deg: tuple[float, 
 def sky(directions: np.ndarray) -> np.ndarray:
     """The orchard's sky gradient, horizon to zenith, linear RGB."""
     elevation = np.clip(directions[:, 2], 0.0, 1.0) ** 0.6
-    return _mix(SKY_HORIZON, SKY_ZENITH, elevation) ** 2.2  # stored linear, encoded later
+    return mix_colours(SKY_HORIZON, SKY_ZENITH, elevation) ** 2.2  # stored linear, encoded later
 
 
 class Renderer:

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from srfpipe.scenes.tree import (
-    Mesh, Segment, _point_segment_distance, _tilt, far_from, leaves, spheres, wood_mesh,
+    Mesh, Segment, point_segment_distance, tilted, far_from, leaves, spheres, wood_mesh,
 )
 
 STEM_SEGMENTS = 8
@@ -66,7 +66,7 @@ def _chain(rng, start, direction, length, radius, count, bend, level) -> list[Se
     """`count` segments from `start`, each turning up to `bend` radians and leaning a little upward."""
     segments = []
     for _ in range(count):
-        direction = _tilt(direction, rng.uniform(0.0, bend), rng.uniform(0, 2 * np.pi))
+        direction = tilted(direction, rng.uniform(0.0, bend), rng.uniform(0, 2 * np.pi))
         direction = direction + np.array([0.0, 0.0, 0.15])  # phototropism
         direction /= np.linalg.norm(direction)
         end = start + (length / count) * direction
@@ -94,7 +94,7 @@ def _twigs(rng, stem: list[Segment], n_twigs: int, height: float) -> list[list[S
     twigs = []
     for k, fraction in enumerate(fractions):
         start, axis, stem_radius = _point_on(stem, float(np.clip(fraction, 0.05, 0.98)))
-        direction = _tilt(axis, rng.uniform(0.75, 1.15), azimuth0 + k * golden + rng.normal(0, 0.2))
+        direction = tilted(axis, rng.uniform(0.75, 1.15), azimuth0 + k * golden + rng.normal(0, 0.2))
         length = TWIG_LENGTH * height * (1.0 - 0.6 * fraction) * rng.uniform(0.8, 1.15)
         radius = max(TWIG_RADIUS * stem_radius, MIN_WOOD_RADIUS * height / TAPER**TWIG_SEGMENTS)
         twigs.append(_chain(rng, start, direction, length, radius, TWIG_SEGMENTS, 0.25, 1))
@@ -109,7 +109,7 @@ def _leaf_on(rng, point, axis, side_angle, height, stalks):
 
     Appends the stalk to `stalks`; returns the leaf's centre, normal, blade direction and length.
     """
-    out = _tilt(axis, np.radians(rng.uniform(50, 80)), side_angle)
+    out = tilted(axis, np.radians(rng.uniform(50, 80)), side_angle)
     stalk_end = point + STALK_LENGTH * height * out
     stalks.append(Segment(point, stalk_end, STALK_RADIUS * height, 2))
     blade = out + np.array([0.0, 0.0, -0.25]) + rng.normal(0, 0.15, 3)  # blades droop a little
@@ -156,7 +156,7 @@ def _hang_berries(rng, twigs, wood, n_berries: int, height: float):
         down /= np.linalg.norm(down)
         stalk_end = anchor + BERRY_STALK * height * rng.uniform(0.8, 1.2) * down
         centre = stalk_end + radius * down
-        clearance = _point_segment_distance(centre[None], starts, ends)[0] - radii
+        clearance = point_segment_distance(centre[None], starts, ends)[0] - radii
         if np.any(clearance < radius * 1.05) or not far_from(centre[None], np.array(centres), 2.1 * radius)[0]:
             misses += 1
             continue
@@ -172,7 +172,7 @@ def _clear_of_berries(leaf_centres, blades, lengths, berry_centres, radius):
         return np.ones(len(leaf_centres), bool)
     bases = leaf_centres - 0.5 * lengths[:, None] * blades
     tips = leaf_centres + 0.5 * lengths[:, None] * blades
-    distance = _point_segment_distance(berry_centres, bases, tips)  # (B, L)
+    distance = point_segment_distance(berry_centres, bases, tips)  # (B, L)
     return distance.min(0) > radius + 0.5 * LEAF_ASPECT * lengths
 
 
@@ -183,7 +183,7 @@ def build_sapling(seed: int, plant_height: float, n_twigs: int, leaves_per_twig:
     """Generate the full, deterministic plant geometry for one seed."""
     rng = np.random.default_rng(seed)
     h = float(plant_height)
-    up = _tilt(np.array([0.0, 0.0, 1.0]), rng.uniform(0.0, 0.1), rng.uniform(0, 2 * np.pi))
+    up = tilted(np.array([0.0, 0.0, 1.0]), rng.uniform(0.0, 0.1), rng.uniform(0, 2 * np.pi))
     stem = _chain(rng, np.zeros(3), up, STEM_LENGTH * h, STEM_RADIUS * h, STEM_SEGMENTS, 0.12, 0)
     twigs = _twigs(rng, stem, n_twigs, h)
     leaf_centres, leaf_normals, blades, lengths, leaf_stalks = _leaves(rng, stem, twigs, leaves_per_twig, h)

@@ -181,7 +181,7 @@ def ground_plane(half_size: float = 200.0) -> Mesh:
 # ----------------------------------------------------------------------------- skeleton
 
 
-def _tilt(direction: np.ndarray, angle: float, azimuth: float) -> np.ndarray:
+def tilted(direction: np.ndarray, angle: float, azimuth: float) -> np.ndarray:
     """Rotate `direction` away from itself by `angle`, towards the side given by `azimuth`."""
     u, v = _orthonormal_basis(direction)
     side = np.cos(azimuth) * u + np.sin(azimuth) * v
@@ -196,7 +196,7 @@ def grow_skeleton(rng: np.random.Generator, depth: int) -> list[Segment]:
     spread round the tree), tilt 35-60 degrees from the parent and are pulled slightly upward,
     like the open vase shape of a pruned apple tree.
     """
-    trunk_dir = _tilt(np.array([0.0, 0.0, 1.0]), rng.uniform(0.0, 0.08), rng.uniform(0, 2 * np.pi))
+    trunk_dir = tilted(np.array([0.0, 0.0, 1.0]), rng.uniform(0.0, 0.08), rng.uniform(0, 2 * np.pi))
     segments = [Segment(np.zeros(3), UNIT_TRUNK_LENGTH * trunk_dir, UNIT_TRUNK_RADIUS, 0)]
     frontier = [segments[0]]
     golden = np.pi * (3.0 - np.sqrt(5.0))
@@ -213,7 +213,7 @@ def grow_skeleton(rng: np.random.Generator, depth: int) -> list[Segment]:
                 at = 1.0 if k == n_children - 1 else rng.uniform(0.55, 0.95)
                 start = parent.start + at * axis
                 tilt = rng.uniform(0.6, 1.05)
-                child_dir = _tilt(direction, tilt, azimuth0 + 2 * k * golden + rng.normal(0, 0.2))
+                child_dir = tilted(direction, tilt, azimuth0 + 2 * k * golden + rng.normal(0, 0.2))
                 child_dir = child_dir + np.array([0.0, 0.0, 0.25])  # phototropism
                 child_dir /= np.linalg.norm(child_dir)
                 if level == 1:  # scaffold branches: a fixed share of the unit tree, whatever the trunk
@@ -229,7 +229,7 @@ def grow_skeleton(rng: np.random.Generator, depth: int) -> list[Segment]:
     return segments
 
 
-def _point_segment_distance(points: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
+def point_segment_distance(points: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
     """Distances (P, S) from each point to each segment."""
     ab = ends - starts
     ap = points[:, None, :] - starts[None]
@@ -287,7 +287,7 @@ def _hang_apples(rng, segments, n_apples: int, depth: int, radius: float) -> np.
         centre = point + offset
         if centre[2] < 0.4 + radius:
             continue
-        clearance = _point_segment_distance(centre[None], starts, ends)[0] - radii
+        clearance = point_segment_distance(centre[None], starts, ends)[0] - radii
         if np.any(clearance < radius * 1.02):
             continue
         if centres and np.min(np.linalg.norm(np.array(centres) - centre, axis=1)) < 2.1 * radius:

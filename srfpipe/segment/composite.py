@@ -173,7 +173,7 @@ def _why_empty(prompt: str, highest: float, threshold: float, value_range: dict 
     return why
 
 
-def _kept_classes(arrays, prompts: list[str], t: np.ndarray, options: dict, n: int, progress: bool,
+def _kept_classes(arrays, prompts: list[str], t: np.ndarray, settings, n: int, progress: bool,
                   value_ranges: list | None = None):
     """Pass 1: which prompts' classes the scene contains; returns (kept indices, empty prompts).
 
@@ -188,9 +188,8 @@ def _kept_classes(arrays, prompts: list[str], t: np.ndarray, options: dict, n: i
         probs = _probabilities(arrays, i, range(len(prompts))).reshape(len(prompts), -1)
         counts += class_members(probs, t).sum(axis=1)
         highest = np.maximum(highest, probs.max(axis=1, initial=0.0))
-    min_pixels = int(options.get("min_pixels", 0))
+    min_pixels, keep_empty = settings.min_pixels, settings.keep_empty_classes
     empty = [p for p, c in zip(prompts, counts) if c <= min_pixels]
-    keep_empty = bool(options.get("keep_empty_classes", False))
     kept = [k for k, p in enumerate(prompts) if keep_empty or p not in empty]
     value_ranges = value_ranges or [None] * len(prompts)
     why = "; ".join(_why_empty(p, float(highest[k]), float(t[k]), value_ranges[k])
@@ -210,24 +209,24 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
     from tqdm import tqdm
 
     from srfpipe.artifacts import create_artifact, update_attrs
-    from srfpipe.config import section_defaults
+    from srfpipe.settings import LabelsSettings
 
-    options = {**section_defaults("labels"), **options}
+    settings = LabelsSettings.from_options(options)
     frames = read_frames(images_path)
     arrays, prompts, thresholds, labelled, value_ranges = _open_masks(list(mask_paths), frames)
     n, height, width, names = frames.count, frames.height, frames.width, frames.names
     all_values = list(range(1, len(prompts) + 1))
     t = np.asarray(thresholds, dtype=np.float32)
-    keep_empty = bool(options.get("keep_empty_classes", False))
+    keep_empty = settings.keep_empty_classes
     if prompts:
-        kept, empty = _kept_classes(arrays, prompts, t, options, n, progress, value_ranges)
+        kept, empty = _kept_classes(arrays, prompts, t, settings, n, progress, value_ranges)
     else:
         kept, empty = [], []
         log.info("no prompts (segmentation.prompts is empty): labels with zero classes for %d frames", n)
     classes = [prompts[k] for k in kept]
     values = [all_values[k] for k in kept]
 
-    config = {**options, "prompts": prompts, "thresholds": dict(zip(prompts, thresholds))}
+    config = {**settings.as_dict(), "prompts": prompts, "thresholds": dict(zip(prompts, thresholds))}
     with create_artifact(out, stage="composite", config=config, inputs=[images_path, *mask_paths]) as group:
         label = group.create_array("label", shape=(n, height, width), chunks=(1, height, width), dtype="uint8",
                                    dimension_names=("image", "y", "x"), fill_value=0)
@@ -250,10 +249,10 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
             member_counts += bits.sum(axis=(1, 2))
         pixel_counts = {c: int(m) for c, m in zip(classes, member_counts)}
         label_pixel_counts = {n_: int(c) for n_, c in zip(["background", *classes], label_counts)}
-        table = image_label_table(classes, values, label_pixel_counts, options.get("colors", {}))
+        table = image_label_table(classes, values, label_pixel_counts, settings.colors)
         label.attrs["image-label"] = table
         hull_mask = partial(_hull_mask, arrays, kept)
-        background = resolve_background(frames, hull_mask, options["background"], bool(classes), labelled)
+        background = resolve_background(frames, hull_mask, settings.background, bool(classes), labelled)
         update_attrs(group, **background)
         carving, carve_mask = labelled, hull_mask
         if background["background"] == "empty" and classes and not labelled.all():
@@ -269,7 +268,7 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
                          np.round(colour).astype(int).tolist(), level)
                 update_attrs(group, hull_silhouettes={"frames": int((~labelled).sum()), "backdrop_colour": colour,
                                                       "level": level})
-        update_attrs(group, **scene_bounds(frames, carve_mask, options["bounds"], bool(classes),
+        update_attrs(group, **scene_bounds(frames, carve_mask, settings.bounds, bool(classes),
                                            background["background"], carving))
         update_attrs(group, classes=classes, class_values=dict(zip(classes, values)), names=names,
                      pixel_counts=pixel_counts, label_pixel_counts=label_pixel_counts,

@@ -141,7 +141,7 @@ def import_masks(
     folder = Path(spec["path"])
     if not folder.is_dir():
         raise FileNotFoundError(f"{folder}: mask folder does not exist (segmentation.import.path)")
-    layout = spec.get("format", "masks")
+    layout = spec["format"]
     pattern = spec.get("pattern") or DEFAULT_PATTERNS[layout]
     if layout == "labels":
         values = (spec.get("values") or {}).get(prompt)

@@ -193,7 +193,7 @@ class OnnxSegmenter:
         try:
             self.session = ort.InferenceSession(
                 str(self.path), sess_options=session_options,
-                providers=execution_providers(options.get("device", "auto")),
+                providers=execution_providers(options["device"]),
             )
         except Exception as exc:  # onnxruntime raises its own exception types for bad files
             raise ValueError(f"{self.path}: onnxruntime cannot load the model ({exc})") from exc
@@ -204,7 +204,7 @@ class OnnxSegmenter:
         self._bind_inputs()
         self._bind_output()
         self._read_preprocessing()
-        self.query = options.get("prompt_text", {}).get(prompt, prompt)
+        self.query = options["prompt_text"].get(prompt, prompt)
         if self.kind == "classes":
             self.channel = self._class_channel()
         else:
@@ -221,7 +221,7 @@ class OnnxSegmenter:
         )
 
     def _detect_kind(self) -> str:
-        kind = self.options.get("kind", "auto")
+        kind = self.options["kind"]
         if kind != "auto":
             return kind
         return "text" if any(i.is_int for i in self.inputs) else "classes"
@@ -293,7 +293,7 @@ class OnnxSegmenter:
         std = opts.get("std") or _json_metadata(meta, "std", self.path) or [1.0, 1.0, 1.0]
         self.mean = np.asarray(mean, dtype=np.float32)
         self.std = np.asarray(std, dtype=np.float32)
-        activation = opts.get("activation", "auto")
+        activation = opts["activation"]
         if activation == "auto":
             activation = meta.get("activation", "sigmoid")
         if activation not in ("sigmoid", "softmax", "none"):
@@ -315,7 +315,7 @@ class OnnxSegmenter:
         else:
             self.input_size = None  # dynamic: the padded image itself
         batch = _static(shape[0])
-        self.batch_size = batch or int(opts.get("batch_size", 8))
+        self.batch_size = batch or int(opts["batch_size"])
         self.input_dtype = np.float16 if self.image_input.dtype == "tensor(float16)" else np.float32
 
     def classes(self) -> list[str]:
@@ -360,10 +360,10 @@ class OnnxSegmenter:
             canvas = (-(-height // m) * m, -(-width // m) * m)
             return canvas, [(0, 0, canvas[1], canvas[0])], (canvas[1], canvas[0])
         tw, th = self.input_size
-        if self.options.get("fit", "resize") == "resize":
+        if self.options["fit"] == "resize":
             return (height, width), [(0, 0, width, height)], (tw, th)
         canvas = (max(height, th), max(width, tw))
-        overlap = float(self.options.get("tile_overlap", 0.25))
+        overlap = float(self.options["tile_overlap"])
         xs = _tile_starts(canvas[1], tw, overlap)
         ys = _tile_starts(canvas[0], th, overlap)
         return canvas, [(x, y, tw, th) for y in ys for x in xs], (tw, th)

@@ -32,7 +32,7 @@ def prompt_options(section: dict, prompt: str) -> dict:
     options = copy.deepcopy(section)
     options.pop("prompts", None)
     thresholds = options.pop("thresholds", {}) or {}
-    options["threshold"] = thresholds.get(prompt, options.get("threshold", 0.5))
+    options["threshold"] = thresholds.get(prompt, options["threshold"])
     for key in _PER_PROMPT:
         if key in options:
             options[key] = {k: v for k, v in (options[key] or {}).items() if k == prompt}

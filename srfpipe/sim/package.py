@@ -43,6 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
+from srfpipe.settings import OccupancySettings
+
 log = logging.getLogger(__name__)
 
 STAGE = "package"
@@ -358,7 +360,7 @@ class SceneInputs:
 def read_scene(occupancy_path: Path, srf_path: Path | None, options: dict, images_path=None) -> SceneInputs:
     """Open the occupancy cache (checked; the trained field's artifact too, when given: the runtime
     renders from it), its classes and roles (avoid / reach), the capture's ground truth and the unit."""
-    from srfpipe.artifacts import meta, open_artifact, require_input
+    from srfpipe.artifacts import meta, open_artifact, recorded_input, require_input
     from srfpipe.occupancy.grid import VoxelGrid
 
     group = open_artifact(occupancy_path, stage="distill")
@@ -369,6 +371,9 @@ def read_scene(occupancy_path: Path, srf_path: Path | None, options: dict, image
         require_input(occupancy_path, srf_path, "train")
         if images_path is not None:
             require_input(srf_path, images_path, "downscale")
+    elif images_path is not None and (field := recorded_input(occupancy_path, "train")) is not None and field.exists():
+        # no field given: the images must still be the ones the cache's field was trained on
+        require_input(field, images_path, "downscale")
     roles = dict(zip(attrs["distance"]["classes"], attrs["distance"]["roles"]))
     gt_folder, gt_scene = read_ground_truth(Path(images_path) if images_path else None)
     units = resolve_unit(options, attrs.get("unit"), gt_scene)
@@ -488,7 +493,8 @@ def write_fields(folder: Path, scene: SceneInputs, distance: dict, contact: dict
             from srfpipe.srf.query import SemanticRadianceField
 
             field = SemanticRadianceField.load(srf_path, device=options["device"])
-        floor = float(scene.attrs["config"].get("density_floor_alpha", 0.001))
+        # a cache written before the key existed was distilled at today's default
+        floor = float(scene.attrs["config"].get("density_floor_alpha", OccupancySettings.density_floor_alpha))
         write_baked(folder / "baked.zarr", bake(field, scene.grid, scene.group["probability"][...], floor),
                     scene.attrs["grid"])
     if not scene.avoid:

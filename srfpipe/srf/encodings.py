@@ -312,11 +312,12 @@ def build_encoding(config: dict, device="cpu") -> nn.Module:
     kind = config.pop("type")
     prefer_tcnn = config.pop("prefer_tcnn", True)
     if kind == "dense":
+        # a model config names levels and fine levels only when a grid has them (build_model_config)
         if int(config.get("levels", 1)) > 1 or int(config.get("fine_levels", 0)) > 0:
-            return MultiResolutionDenseGrid(config["resolution"], config.get("features", 8),
+            return MultiResolutionDenseGrid(config["resolution"], config["features"],
                                             int(config.get("levels", 1)), config.get("combine", "concat"),
                                             int(config.get("fine_levels", 0)), int(config.get("log2_table_size", 22)))
-        return DenseGrid(tuple(config["resolution"]), config.get("features", 16))
+        return DenseGrid(tuple(config["resolution"]), config["features"])
     if kind == "hash":
         if prefer_tcnn and tcnn_available(device):
             return TcnnHashGrid(**config)

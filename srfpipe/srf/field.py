@@ -130,8 +130,8 @@ class SemanticField(nn.Module):
         if self.outer is not None and self.outer.output_dim != self.inner.output_dim:
             raise ValueError("inner and outer encodings must produce the same number of features")
         hidden = int(c["hidden"])
-        self.density_bias = float(c.get("density_bias", -1.0))
-        self.density_grid = bool(c.get("density_grid", False))
+        self.density_bias = float(c["density_bias"])
+        self.density_grid = bool(c["density_grid"])
         if self.density_grid:
             # one channel; levels of a multi-resolution grid add up to one log-density
             self.inner_sigma = build_encoding(dict(c["inner"], features=1, combine="sum"), device)
@@ -148,7 +148,7 @@ class SemanticField(nn.Module):
             self.density_mlp = mlp(self.inner.output_dim, hidden, 1 + geo)
         self.geo_features = geo
         self.sh_degree = int(c["sh_degree"])
-        appearance_dim = int(c.get("appearance_dim", 0))
+        appearance_dim = int(c["appearance_dim"])
         self.appearance = (
             nn.Embedding(int(c["num_images"]), appearance_dim) if appearance_dim > 0 else None
         )
@@ -160,12 +160,12 @@ class SemanticField(nn.Module):
             self.register_buffer("camera_centres", torch.full((num_images, 3), float("nan")))
             self.register_buffer("camera_axes", torch.full((num_images, 3), float("nan")))
         self.color_mlp = mlp(geo + self.sh_degree**2 + appearance_dim, hidden, 3,
-                             layers=int(c.get("color_layers", 2)))
+                             layers=int(c["color_layers"]))
         self.num_classes = int(c["num_classes"])
         # F_s reads h.detach() and, optionally, a frequency encoding of the (contracted) position:
         # with a dense grid h is the colour features only, and green leaves and green grass share
         # colours; the position is not a parameter, so geometry stays out of reach of L_sem.
-        self.semantic_octaves = int(c.get("semantic_octaves", 0))
+        self.semantic_octaves = int(c["semantic_octaves"])
         self.semantic_mlp = mlp(geo + 6 * self.semantic_octaves, hidden, self.num_classes)
         self.background_mlp = mlp(self.sh_degree**2, 32, 3)
         # background logits: rays that leave the field see "no class" unless learned otherwise

@@ -42,6 +42,12 @@ def write_srf(path, model, *, config: dict, inputs: list, curve: dict, eval_curv
                 sub.create_array(key, shape=values.shape, dtype=np.float64)[...] = values
 
 
+# Model-config keys that srf.zarr files written before them lack, with what the model did then
+# (build_model_config writes every one of them today)
+LEGACY_MODEL_CONFIG = {"density_bias": -1.0, "density_grid": False, "appearance_dim": 0, "color_layers": 2,
+                       "semantic_octaves": 0, "color_threshold": 1e-4}
+
+
 def read_srf(path, device="cpu"):
     """(model, attrs) from srf.zarr on `device` (a torch.device or string), in eval mode."""
     from srfpipe.srf.model import SRFModel
@@ -51,7 +57,7 @@ def read_srf(path, device="cpu"):
     attrs = meta(group)
     if attrs.get("format") != FORMAT:
         raise ValueError(f"{path}: unknown SRF format {attrs.get('format')!r}, this srfpipe reads {FORMAT}")
-    config = attrs["model_config"]
+    config = {**LEGACY_MODEL_CONFIG, **attrs["model_config"]}
     weights = group["weights"]
     for key in ("inner", "outer"):  # the torch layout, unless tiny-cuda-nn wrote the table
         if config.get(key):

@@ -27,6 +27,15 @@ FLOATER_CELLS = 4.0
 # candidate intervals before the occupancy grid culls them (8192 rays x 2048 = 16 M intervals in
 # an evaluation chunk). The default step (one cell) gives at most 256 * sqrt(3) = 444.
 MAX_STEPS_ACROSS_BOX = 2048
+# Bytes one candidate interval of a ray costs while a training batch is sampled and culled
+# (t_start and t_end, the keep mask, the culling points and indices, the sort and gather of pack):
+# an upper estimate for the check before a step's batch is allocated
+CANDIDATE_BYTES = 64
+# Initial opacity per step of the density grid when the bounds are trusted (config, ground truth);
+# the trainer picks 0.001 for estimated bounds (srf/trainer.py, resolve_data_defaults)
+TRUSTED_INITIAL_OPACITY = 0.01
+# the occupancy grid's running density: new = max(decay * old, measured) at each update
+OCCUPANCY_DECAY = 0.95
 
 log = logging.getLogger(__name__)
 
@@ -66,16 +75,27 @@ def grid_bytes(inner: dict, outer: dict | None, density_grid: bool) -> float:
     return total
 
 
-def build_model_config(options: dict, bounds_world, scene_from_world, classes: list[str],
+# What the model uses for the train keys that have no schema default (the schema says so)
+HASH_LEVELS = 16
+HASH_LOG2_TABLE_SIZE = 19
+BASE_CELLS = 96  # cells across the box's largest side when neither detail_size nor default_cells is set
+
+
+def default_features(grid_levels: int | None) -> int:
+    """Dense-grid features per cell when `train.features` is null: 16 for one level, 8 for several."""
+    return 8 if int(grid_levels or 1) > 1 else 16
+
+
+def build_model_config(options, bounds_world, scene_from_world, classes: list[str],
                        num_images: int, device="cpu") -> dict:
-    """Model config from the `train` options and the scene geometry (bounds, normalization).
+    """Model config from the `train` settings and the scene geometry (bounds, normalization).
 
-    Keys missing from `options` take the scene schema's `train` defaults, so a caller that skips
-    validation (a notebook, a benchmark) builds the workflow's model, not one of literal fallbacks.
+    `options`: TrainSettings, or a dict of train keys (validated, the schema's defaults filled in),
+    so a caller that skips the workflow (a notebook, a benchmark) builds the workflow's model.
     """
-    from srfpipe.config import section_defaults
+    from srfpipe.settings import TrainSettings
 
-    options = {**section_defaults("train"), **options}
+    s = TrainSettings.from_options(options)
     bounds_world = np.asarray(bounds_world, dtype=np.float64)
     if bounds_world.shape != (2, 3) or not np.all(bounds_world[1] > bounds_world[0]):
         raise ValueError(f"scene bounds must be [[min xyz], [max xyz]] with min < max, got {bounds_world.tolist()}")
@@ -83,15 +103,14 @@ def build_model_config(options: dict, bounds_world, scene_from_world, classes: l
     corners = np.array(np.meshgrid(*bounds_world.T)).reshape(3, -1).T
     corners_scene = corners @ np.asarray(scene_from_world)[:3, :3].T + np.asarray(scene_from_world)[:3, 3]
     box_min, box_max = corners_scene.min(0), corners_scene.max(0)
-    pad = float(options.get("box_padding", 0.0)) * (box_max - box_min)
+    pad = float(s.box_padding) * (box_max - box_min)
     box_min, box_max = box_min - pad, box_max + pad
     extent = box_max - box_min
-    detail_world = options.get("detail_size")
-    if detail_world is None:  # no unit known: a fixed fraction of the scene's largest extent
-        detail_scene = float(extent.max()) / float(options.get("default_cells") or 96)
+    if s.detail_size is None:  # no unit known: a fixed fraction of the scene's largest extent
+        detail_scene = float(extent.max()) / float(s.default_cells or BASE_CELLS)
     else:
-        detail_scene = float(detail_world) * scale
-    cap = int(options.get("max_resolution", 256))
+        detail_scene = float(s.detail_size) * scale
+    cap = int(s.max_resolution)
     resolution = [grid_resolution(float(e), detail_scene, cap) for e in extent]
     finest = float(extent.max()) / (max(resolution) - 1)  # the cell the (capped) grid really has
     if detail_scene < finest * (1 - 1e-9):
@@ -99,19 +118,19 @@ def build_model_config(options: dict, bounds_world, scene_from_world, classes: l
                     "max_resolution %d points can resolve over the box: cells and steps of %.3g instead",
                     detail_scene / scale, cap, finest / scale)
         detail_scene = finest
-    encoding = options.get("encoding", "auto")
+    encoding = s.encoding
     if encoding == "auto":
         encoding = default_encoding(device)
         log.info("encoding %s (auto on %s: the dense grid measured best on the CPU and on CUDA)",
                  encoding, torch.device(device).type)
-    contraction = bool(options.get("contraction", True))
-    features = int(options.get("features") or (8 if int(options.get("grid_levels") or 1) > 1 else 16))
+    contraction = bool(s.contraction)
+    features = int(s.features or default_features(s.grid_levels))
     if encoding == "dense":
-        levels = int(options.get("grid_levels") or 1)
+        levels = int(s.grid_levels or 1)
         inner = {"type": "dense", "resolution": resolution, "features": features}
-        g = int(options.get("outer_resolution", 48))
+        g = int(s.outer_resolution)
         outer = {"type": "dense", "resolution": [g, g, g], "features": features} if contraction else None
-        fine_levels = int(options.get("fine_levels") or 0)
+        fine_levels = int(s.fine_levels or 0)
         if levels > 1 or fine_levels:
             inner["levels"] = levels
             if outer:
@@ -119,51 +138,57 @@ def build_model_config(options: dict, bounds_world, scene_from_world, classes: l
         if fine_levels:
             for grid in (inner, outer):
                 if grid:
-                    grid.update(fine_levels=fine_levels, log2_table_size=int(options.get("fine_log2_table_size", 22)))
+                    grid.update(fine_levels=fine_levels, log2_table_size=int(s.fine_log2_table_size))
     elif encoding == "hash":
         finest = max(resolution) * (2 if contraction else 1)
-        inner = {"type": "hash", "levels": int(options.get("hash_levels", 16)),
-                 "features_per_level": 2, "log2_table_size": int(options.get("hash_log2_table_size", 19)),
+        inner = {"type": "hash", "levels": int(s.hash_levels or HASH_LEVELS), "features_per_level": 2,
+                 "log2_table_size": int(s.hash_log2_table_size or HASH_LOG2_TABLE_SIZE),
                  "base_resolution": 16, "max_resolution": int(finest)}
         outer = None
     else:
         raise ValueError(f"train.encoding must be auto, dense or hash, got {encoding!r}")
-    density_grid = bool(options.get("density_grid", encoding == "dense"))
+    density_grid = bool(encoding == "dense" if s.density_grid is None else s.density_grid)
     check_allocation(TRAINING_COPIES * grid_bytes(inner, outer, density_grid),
-                     "train.detail_size" if detail_world is not None else "train.max_resolution",
+                     "train.detail_size" if s.detail_size is not None else "train.max_resolution",
                      f"a {' x '.join(map(str, resolution))} grid of {features} features (weights, gradients and "
                      f"Adam's two moments)", device)
-    step = detail_scene * float(options.get("step_ratio", 1.0))
+    step = detail_scene * float(s.step_ratio)
     diagonal = float(np.linalg.norm(extent))
     if diagonal / step > MAX_STEPS_ACROSS_BOX:
         finest_step = diagonal / MAX_STEPS_ACROSS_BOX
         log.warning("train.step_ratio %g gives %.3g steps across the box (memory grows with it); "
-                    "step ratio %.3g instead (%d steps)", float(options.get("step_ratio", 1.0)),
+                    "step ratio %.3g instead (%d steps)", float(s.step_ratio),
                     diagonal / step, finest_step / detail_scene, MAX_STEPS_ACROSS_BOX)
         step = finest_step
+    candidates = int(math.ceil(diagonal / step)) + 1 + (s.before_samples + s.outer_samples if contraction else 0)
+    check_allocation(s.rays_per_batch * candidates * CANDIDATE_BYTES, "train.rays_per_batch",
+                     f"a batch of {s.rays_per_batch} rays of {candidates} candidate intervals each", device)
     # initial opacity per step of the density grid: faintly foggy, so every cell gets gradients
-    density_bias = math.log(float(options.get("initial_opacity") or 0.01) / step) if density_grid else -1.0
+    # (null initial_opacity: the trainer resolves it from the bounds; a bare model config uses the
+    # trusted-bounds value)
+    initial_opacity = float(s.initial_opacity or TRUSTED_INITIAL_OPACITY)
+    density_bias = math.log(initial_opacity / step) if density_grid else -1.0
     occupancy_resolution = [max(int(math.ceil((r - 1) / 2)), 1) for r in resolution]
     return {
         "box_min": box_min.tolist(), "box_max": box_max.tolist(),
         "contraction": contraction, "inner": inner, "outer": outer,
-        "hidden": int(options.get("hidden", 64)), "geo_features": int(options.get("geo_features", 15)),
-        "sh_degree": int(options.get("sh_degree", 4)), "num_classes": len(classes),
-        "appearance_dim": int(options.get("appearance_dim") or 0), "num_images": int(num_images),
+        "hidden": int(s.hidden), "geo_features": int(s.geo_features),
+        "sh_degree": int(s.sh_degree), "num_classes": len(classes),
+        "appearance_dim": int(s.appearance_dim or 0), "num_images": int(num_images),
         "density_bias": density_bias, "density_grid": density_grid,
-        "color_layers": int(options.get("color_layers", 2)),
-        "semantic_octaves": int(options.get("semantic_octaves", 4)),
-        "color_threshold": float(options.get("color_threshold", 1e-4)),
+        "color_layers": int(s.color_layers),
+        "semantic_octaves": int(s.semantic_octaves),
+        "color_threshold": float(s.color_threshold),
         "detail_scene": detail_scene,
         "sampler": {
             "step": step,
-            "near": float(options.get("near", 0.05)), "far": float(options.get("far", 200.0)),
-            "contraction": contraction, "outer_samples": int(options.get("outer_samples", 48)),
-            "before_samples": int(options.get("before_samples", 16)),
+            "near": float(s.near), "far": float(s.far),
+            "contraction": contraction, "outer_samples": int(s.outer_samples),
+            "before_samples": int(s.before_samples),
         },
         "occupancy": {
-            "resolution": occupancy_resolution, "outer_resolution": int(options.get("occupancy_outer_resolution", 32)),
-            "threshold": float(options.get("occupancy_threshold", 0.01)), "decay": 0.95,
+            "resolution": occupancy_resolution, "outer_resolution": int(s.occupancy_outer_resolution),
+            "threshold": float(s.occupancy_threshold), "decay": OCCUPANCY_DECAY,
         },
     }
 
@@ -181,7 +206,7 @@ class SRFModel(nn.Module):
             config["box_min"], config["box_max"], occ["resolution"], config["contraction"],
             occ["outer_resolution"], step=self.settings.step, threshold=occ["threshold"], decay=occ["decay"],
         )
-        self.color_threshold = float(config.get("color_threshold", 1e-4))
+        self.color_threshold = float(config["color_threshold"])
 
     def sample(self, origins, directions, jitter=None):
         """Candidate intervals culled by the occupancy grid, packed (see sampling.pack)."""
