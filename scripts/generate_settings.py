@@ -18,6 +18,9 @@ from pathlib import Path
 
 import yaml
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from srfpipe.config import frozen_value  # noqa: E402  (the function from_section freezes values with)
+
 REPO = Path(__file__).resolve().parent.parent
 SCHEMA = REPO / "workflow" / "schemas" / "scene.schema.yaml"
 OUT = REPO / "srfpipe" / "settings.py"
@@ -60,13 +63,6 @@ def annotation(schema: dict) -> str:
     return " | ".join(names + (["None"] if optional else []))
 
 
-def frozen(value):
-    """A schema default as the dataclass holds it: arrays become tuples (a frozen value)."""
-    if isinstance(value, list):
-        return tuple(frozen(v) for v in value)
-    return value
-
-
 def first_sentence(text: str | None, limit: int = 240) -> str:
     """The description up to its first sentence end outside parentheses (a '. ' before a capital
     letter, or a ';'), at most `limit` characters."""
@@ -90,7 +86,7 @@ def default_code(schema: dict, nested: str | None, key: str) -> str:
         return f"field(default_factory={nested}, metadata={{{', '.join(metadata)}}})"
     if "default" not in schema:  # absent from a validated section: None, and left out by as_dict
         metadata.append('"unset": True')
-    value = frozen(schema["default"]) if "default" in schema else None
+    value = frozen_value(schema["default"]) if "default" in schema else None
     if isinstance(value, dict):
         code = f"field(default_factory=lambda: {value!r}" if value else "field(default_factory=dict"
         return code + (f", metadata={{{', '.join(metadata)}}})" if metadata else ")")

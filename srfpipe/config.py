@@ -191,7 +191,7 @@ class SettingsSection:
         for key, value in values.items():
             f = known[key]
             nested = f.metadata.get("section")
-            kwargs[f.name] = nested.from_section(value) if nested else _frozen(value)
+            kwargs[f.name] = nested.from_section(value) if nested else frozen_value(value)
         return cls(**kwargs)
 
     @classmethod
@@ -226,12 +226,13 @@ class SettingsSection:
         """A copy with some fields changed (the capture-dependent defaults a stage resolves)."""
         import dataclasses
 
-        return dataclasses.replace(self, **{k: _frozen(v) for k, v in changes.items()})
+        return dataclasses.replace(self, **{k: frozen_value(v) for k, v in changes.items()})
 
 
-def _frozen(value):
+def frozen_value(value):
+    """A value as a settings field holds it: lists become tuples (frozen), recursively."""
     if isinstance(value, list):
-        return tuple(_frozen(v) for v in value)
+        return tuple(frozen_value(v) for v in value)
     return value
 
 

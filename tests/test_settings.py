@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from srfpipe import settings
-from srfpipe.config import ConfigError, SettingsSection, load_schema, validate_scene
+from srfpipe.config import ConfigError, load_schema, validate_scene
 
 REPO = Path(__file__).resolve().parent.parent
 SCHEMA_TYPES = {"integer": int, "number": float, "string": str, "boolean": bool, "array": tuple, "object": dict,
@@ -40,8 +40,7 @@ def settings_class(path: str):
 def field_default(f: dataclasses.Field):
     if f.default is not dataclasses.MISSING:
         return f.default
-    value = f.default_factory()
-    return value.as_dict() if isinstance(value, SettingsSection) else value
+    return f.default_factory()
 
 
 def frozen(value):

@@ -284,8 +284,7 @@ class HeldoutEvaluation(Hook):
         if every and (run.step % every == 0 or run.step == run.settings.iterations):
             result = record_heldout(run)
             log.info("step %d held-out %s", run.step, result)
-            if self.metrics_log.file:
-                self.metrics_log.file.write(json.dumps({"step": run.step, "seconds": run.seconds, "heldout": result}) + "\n")
+            self.metrics_log.write({"step": run.step, "seconds": run.seconds, "heldout": result})
         return False
 
 
