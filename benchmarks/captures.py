@@ -18,14 +18,16 @@ every 8th view held out):
 * orchard-lens  generated variant: the orchard rendered through an OpenCV lens with a phone's strong
                 tangential calibration (k1 -0.0024, k2 -0.021, p1 0.011, p2 0.0096) at 605 x 806.
 
-    python benchmarks/captures.py [--quick] [--workdir DIR] [--scenes NAME ...] [--panel-only]
+    python benchmarks/captures.py [--quick] [--workdir DIR] [--scenes NAME ...] [--panel-only] [--masks-only]
 
 A scene whose images shrink by another factor than 4 (images.downscale null keeps the plant's 18
 views at 256 px) is also measured on its held-out views at factor 4, the resolution earlier runs
 measured at: `reference` in its entry; the plant's thin_* keys are those.
 
 Writes benchmarks/results/captures.json (per scene, and the `panel` table the issue names: psnr,
-ssim, psnr_object, miou_classes, train_view_psnr, bounds_source, steps, and nerfacto's and
+ssim, psnr_object, miou_classes, train_view_psnr, bounds_source, steps, masks_miou_classes (the masks'
+own class mIoU against ground truth on the training views: the ceiling a field that learns from
+them rarely passes; `--masks-only` measures it without training), and nerfacto's and
 srfpipe's peers.json numbers where that file has the capture) and captures.png (per scene, the
 first held-out view: render | semantics | depth). `--quick`: 60 s of training and no COLMAP
 refinement of the fox. A run of some scenes keeps the others' last measurement.
@@ -83,7 +85,19 @@ def shared_paths(value):
     return value
 
 
-def scene_configs(names: list[str], quick: bool) -> dict[str, dict]:
+def parse_overrides(assignments: list[str]) -> dict:
+    """`--set section.key=value` (YAML values) as nested scene sections: a candidate default."""
+    overrides: dict = {}
+    for assignment in assignments:
+        key, sep, value = assignment.partition("=")
+        section, dot, name = key.partition(".")
+        if not (sep and dot and section and name):
+            raise SystemExit(f"--set {assignment!r}: expected SECTION.KEY=VALUE, e.g. train.distortion=0.002")
+        overrides.setdefault(section, {})[name] = yaml.safe_load(value)
+    return overrides
+
+
+def scene_configs(names: list[str], quick: bool, overrides: dict | None = None) -> dict[str, dict]:
     scenes = {}
     for name in names:
         base, overrides = VARIANTS.get(name, (name, {}))
@@ -99,6 +113,8 @@ def scene_configs(names: list[str], quick: bool) -> dict[str, dict]:
             scene.setdefault("train", {})["time_budget"] = 60
         else:  # the field's weights at 5 minutes: the panel's srfpipe_psnr_5min, from the same run
             scene.setdefault("train", {})["snapshot_seconds"] = [FIVE_MINUTES]
+        for section, values in (overrides or {}).items():
+            scene[section] = {**scene.get(section, {}), **values}
         scenes[name] = scene
     return scenes
 
@@ -142,7 +158,8 @@ def scene_report(results: Path, workdir: Path, name: str) -> dict:
         metrics = json.loads(metrics_file.read_text())
         for key in ("psnr", "psnr_object", "ssim", "miou", "miou_gt", "miou_gt_classes", "iou_gt",
                     "floater_fraction", "significant_samples_per_ray", "views", "miou_classes",
-                    "train_view_psnr", "generalization_gap_db", "overfit"):
+                    "train_view_psnr", "generalization_gap_db", "overfit", "miou_masks_gt", "miou_masks_gt_classes",
+                    "iou_masks_gt"):
             if key in metrics:
                 report[key] = metrics[key]
     labels = results / name / "labels.zarr"
@@ -251,6 +268,8 @@ def panel_entry(scene: dict, peers: dict) -> dict:
     return {
         "psnr": scene.get("psnr"), "ssim": scene.get("ssim"), "psnr_object": scene.get("psnr_object"),
         "miou_classes": scene.get("miou_gt_classes", scene.get("miou_classes")),
+        # the masks the field learned from, against the truth on the training views: their ceiling
+        "masks_miou_classes": scene.get("miou_masks_gt_classes"),
         "train_view_psnr": scene.get("train_view_psnr"), "generalization_gap_db": scene.get("generalization_gap_db"),
         **{f"nerfacto_psnr_{minutes}min": ((budgets.get(str(60 * minutes)) or {}).get("nerfacto") or {}).get("psnr")
            for minutes in NERFACTO_MINUTES},
@@ -279,6 +298,41 @@ def peers_by_scene() -> dict:
     return peers
 
 
+def mask_ceiling(results: Path, scene: dict) -> dict:
+    """The composited masks of a capture with ground truth against that truth on its labelled training
+    views (`srfpipe.evaluate.mask_agreement`, as evaluate reports it), from labels.zarr alone."""
+    from srfpipe.evaluate import mask_agreement
+    from srfpipe.settings import EvaluateSettings
+    from srfpipe.srf.data import load_posed_images, split_views
+
+    data = load_posed_images(results / "images.zarr", results / "labels.zarr")
+    if data.gt_label is None or not data.classes:
+        return {}
+    train, _ = split_views(data.count, EvaluateSettings.from_options(scene.get("evaluate") or {}).holdout_every)
+    return mask_agreement(data, train if data.labelled is None else train[data.labelled[train]])
+
+
+def measure_masks_only(workdir: Path, names: list[str], path: Path, extra: tuple) -> int:
+    """`--masks-only`: build each capture up to labels.zarr (no training) and add the masks' ceiling
+    (miou_masks_gt...) to its entry in captures.json, keeping everything else."""
+    scenes = scene_configs(names, quick=False)
+    write_workdir(workdir, scenes, "occupancy")
+    for name in scenes:
+        if name == "plant-small":
+            run_workflow(workdir, [f"results/{name}/capture"], log=workdir / "snakemake.log", extra=extra)
+            prepare_soft_partial_masks(workdir, name, scenes[name])
+    run_workflow(workdir, [f"results/{name}/labels.zarr" for name in scenes], log=workdir / "snakemake.log", extra=extra)
+    report = json.loads(path.read_text())
+    for name, scene in scenes.items():
+        ceiling = mask_ceiling(workdir / "results" / name, scene)
+        report["scenes"].setdefault(name, {}).update(ceiling)
+        if ceiling:
+            print(f"{name:14} masks against the truth: mIoU of the classes {ceiling['miou_masks_gt_classes']:.3f} "
+                  f"({', '.join(f'{k} {v:.2f}' for k, v in ceiling['iou_masks_gt'].items() if v is not None)})")
+    write_result(path, report)
+    return refresh_panel(path)
+
+
 def refresh_panel(path: Path) -> int:
     """Rebuild captures.json's `panel` from its scenes and the current peers.json, building nothing:
     nerfacto's numbers (peers.py --panel) are measured once, apart from srfpipe's runs."""
@@ -288,6 +342,33 @@ def refresh_panel(path: Path) -> int:
                        for name in PANEL if name in report["scenes"]}
     write_result(path, report)
     return 0
+
+
+CHANGE_KEYS = ("psnr", "psnr_object", "miou_classes", "train_view_psnr", "generalization_gap_db")
+# issue "captures nobody tuned for": a change that costs any capture more than this is a scene option
+DEFAULT_TOLERANCE_DB = 0.3
+
+
+def candidate_change(panel: dict, baseline_file: Path) -> dict:
+    """Each capture's candidate numbers minus captures.json's panel (the defaults)."""
+    baseline = json.loads(baseline_file.read_text()).get("panel", {}) if baseline_file.exists() else {}
+    change = {}
+    for name, entry in panel.items():
+        base = baseline.get(name, {})
+        change[name] = {key: entry[key] - base[key] for key in CHANGE_KEYS
+                        if isinstance(entry.get(key), float) and isinstance(base.get(key), float)}
+    return change
+
+
+def print_change(overrides: dict, change: dict) -> None:
+    print(f"candidate {overrides} against the defaults (captures.json):")
+    print(f"{'capture':14} " + " ".join(f"{k[:12]:>12}" for k in CHANGE_KEYS))
+    for name, delta in change.items():
+        print(f"{name:14} " + " ".join(f"{delta[k]:+12.2f}" if k in delta else f"{'-':>12}" for k in CHANGE_KEYS))
+    worst = min((d["psnr"] for d in change.values() if "psnr" in d), default=None)
+    if worst is not None:
+        print(f"worst held-out PSNR change {worst:+.2f} dB: "
+              f"{'within' if worst >= -DEFAULT_TOLERANCE_DB else 'beyond'} the {DEFAULT_TOLERANCE_DB} dB a default may cost")
 
 
 def main() -> int:
@@ -300,7 +381,16 @@ def main() -> int:
     parser.add_argument("--snakemake-args", nargs=argparse.REMAINDER, default=[],
                         help="more Snakemake arguments (last), e.g. --rerun-triggers mtime to keep a "
                              "finished COLMAP refinement after a schema default changed")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                        help="a candidate default, set in every scene (repeatable): the run writes "
+                             "captures_candidate.json with each capture's change against captures.json's panel, "
+                             "in its own work directory (captures-candidate)")
+    parser.add_argument("--masks-only", action="store_true",
+                        help="build the scenes up to labels.zarr (no training) and add the masks' own mIoU against "
+                             "ground truth (masks_miou_classes) to captures.json")
     args = parser.parse_args()
+    if args.masks_only:
+        return measure_masks_only(args.workdir, args.scenes, result_path("captures", args.quick), tuple(args.snakemake_args))
     if args.panel_only:
         return refresh_panel(result_path("captures", args.quick))
     for name in args.scenes:
@@ -310,7 +400,10 @@ def main() -> int:
         if path.startswith(str(SHARED)) and not Path(path).exists():
             parser.error(f"{path}: the {name} capture is not there (../shared/data beside the repository)")
 
-    scenes = scene_configs(args.scenes, args.quick)
+    overrides = parse_overrides(args.overrides)
+    if overrides and args.workdir == parser.get_default("workdir"):
+        args.workdir = args.workdir.with_name("captures-candidate")
+    scenes = scene_configs(args.scenes, args.quick, overrides)
     write_workdir(args.workdir, scenes, "occupancy")
     for name in scenes:
         if name == "plant-small":  # its masks are made from its generated capture
@@ -333,16 +426,18 @@ def main() -> int:
         for name in scenes:
             if f"{name}-reference" in references and (results / name / "srf.zarr").exists():
                 per_scene[name]["reference"] = reference_report(args.workdir, name)
-    previous_file = result_path("captures", args.quick)
+    previous_file = result_path("captures_candidate" if overrides else "captures", args.quick)
     measured_now = sorted(per_scene)
     previous_configs = {}
-    if previous_file.exists():  # a run of some scenes keeps the others' last measurement
-        previous_report = json.loads(previous_file.read_text())
+    previous_report = json.loads(previous_file.read_text()) if previous_file.exists() else {}
+    if previous_report and previous_report.get("overrides", {}) == overrides:
+        # a run of some scenes keeps the others' last measurement (of the same candidate)
         previous_configs = previous_report.get("scene_configs", {})
         per_scene = {**earlier_measurements(previous_report.get("scenes", {}), per_scene), **per_scene}
     peers = peers_by_scene()
     panel = {name: panel_entry(per_scene[name], peers.get(name, {})) for name in PANEL if name in per_scene}
-    report: dict = {"scenes": per_scene, "panel": panel, "measured_now": measured_now, "workflow_seconds": seconds,
+    report: dict = {"overrides": overrides, "scenes": per_scene, "panel": panel, "measured_now": measured_now,
+                    "workflow_seconds": seconds,
                     "machine": machine_info(quick=args.quick),
                     "scene_configs": {**{k: v for k, v in previous_configs.items() if k in per_scene}, **scenes}}
     fox, plant, orchard = (per_scene.get(n, {}) for n in ("fox", "plant", "orchard"))
@@ -360,6 +455,11 @@ def main() -> int:
         "thin_bounds_ratio": (plant.get("bounds") or {}).get("ratio_to_object"),
         "thin_bounds_ratio_poses": (plant.get("bounds") or {}).get("poses_ratio_to_object"),
     })
+    if overrides:
+        report["change"] = candidate_change(panel, result_path("captures", args.quick))
+        write_result(previous_file, report)
+        print_change(overrides, report["change"])
+        return 0
     # every scene in the report whose renders are in the work directory, measured now or earlier
     montage(results, list(per_scene), REPO / "benchmarks" / "results" / f"captures{'_quick' if args.quick else ''}.png")
     write_result(result_path("captures", args.quick), report)

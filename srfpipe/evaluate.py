@@ -12,6 +12,10 @@ the same way and scored (`train_view_psnr`, no renders written); `generalization
 minus the held-out `psnr`, and a gap above GENERALIZATION_GAP_DB sets `overfit` and logs a warning.
 Sparse labels: when some training frames had no masks and the capture has ground truth, a few of
 them (`evaluate.unlabelled_views`) are scored against it too (`miou_unlabelled_gt`).
+The masks' own ceiling: on a capture with ground truth, the composited labels of the labelled
+training views are scored against it (`miou_masks_gt`, `iou_masks_gt`): a field that learns from
+masks rarely beats them, so a low held-out `miou_gt` beside a low `miou_masks_gt` says the masks,
+not the field, limit it.
 
 A field with zero classes (a capture without masks) has nothing to segment and no reference
 labels to say which pixels are objects: its metrics are `psnr` and `ssim` only (no `psnr_object`,
@@ -55,7 +59,7 @@ def run(args) -> int:
 
         torch.set_num_threads(args.threads)
     metrics = evaluate(args.images, args.labels, args.srf, args.out, options, device=args.device)
-    summary = {k: metrics[k] for k in ("psnr", "psnr_object", "ssim", "miou", "miou_gt", "miou_unlabelled_gt",
+    summary = {k: metrics[k] for k in ("psnr", "psnr_object", "ssim", "miou", "miou_gt", "miou_masks_gt", "miou_unlabelled_gt",
                                        "floater_fraction", "train_view_psnr", "generalization_gap_db", "overfit")
                if k in metrics}
     print(json.dumps(summary))
@@ -283,6 +287,8 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
             result.update(_iou_metrics(conf, ["background"] + data.classes, ""))
             if conf_gt is not None:
                 result.update(_iou_metrics(conf_gt, ["background"] + data.classes, "_gt"))
+                labelled_train = train if data.labelled is None else train[data.labelled[train]]
+                result.update(mask_agreement(data, labelled_train))
             result["labelled_frames"] = int(data.count if data.labelled is None else data.labelled.sum())
             if len(unlabelled_chosen) and conf_gt is not None:
                 # sparse labels: the training views that had no mask, against the capture's truth
@@ -310,6 +316,20 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
                     "(gap %.1f dB > %g)", srf, result["train_view_psnr"], result["psnr"],
                     result["generalization_gap_db"], GENERALIZATION_GAP_DB)
     return result
+
+
+def mask_agreement(data, views) -> dict:
+    """The composited labels of `views` against the capture's ground truth (`PosedImages` with
+    gt_label): iou_masks_gt, miou_masks_gt and miou_masks_gt_classes, the ceiling the masks set."""
+    from srfpipe.srf import metrics
+    from srfpipe.srf.data import remap_ground_truth
+
+    labels = len(data.classes) + 1
+    conf = np.zeros((labels, labels), np.int64)
+    for index in views:
+        truth = remap_ground_truth(data.gt_label[index], data.gt_classes, data.classes)
+        conf += metrics.confusion(data.label[index], truth, labels)
+    return _iou_metrics(conf, ["background"] + list(data.classes), "_masks_gt")
 
 
 def _iou_metrics(confusion: np.ndarray, names: list[str], suffix: str) -> dict:

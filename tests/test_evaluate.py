@@ -229,3 +229,20 @@ def test_sparse_labels_are_scored_on_the_training_views_that_had_no_mask(scene):
 
     every = evaluate_field(ExactField(images, data.classes), data, folder / "eval_every", CENTRES, labels, "exact")
     assert "miou_unlabelled_gt" not in every and every["labelled_frames"] == VIEWS
+
+
+def test_the_masks_own_agreement_with_the_truth_is_reported_apart_from_the_fields(scene):
+    """`miou_masks_gt` scores the masks the field learned from (labelled training views) against
+    the capture's truth: masks that miss a class lower it, while the field's own score does not move."""
+    folder, images, labels = scene
+    data = load_posed_images(images, labels)
+    exact = evaluate_field(ExactField(images, data.classes), data, folder / "eval_masks", CENTRES, labels, "exact")
+    assert exact["miou_masks_gt"] > 0.95 and set(exact["iou_masks_gt"]) == {"background", *data.classes}
+    present = np.bincount(data.label.ravel(), minlength=len(data.classes) + 1)
+    missed = int(np.argmax(present[1:])) + 1  # the class with the most pixels
+    label = np.where(data.label == missed, 0, data.label).astype(data.label.dtype)
+    damaged = evaluate_field(ExactField(images, data.classes), dataclasses.replace(data, label=label),
+                             folder / "eval_masks_missing", CENTRES, labels, "exact")
+    assert damaged["iou_masks_gt"][data.classes[missed - 1]] == 0
+    assert damaged["miou_masks_gt_classes"] < exact["miou_masks_gt_classes"] - 0.3
+    assert damaged["miou_gt"] == pytest.approx(exact["miou_gt"])
