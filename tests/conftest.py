@@ -20,11 +20,29 @@ TINY_ORCHARD = {
 }
 
 
+# Under pytest-xdist (the README's `-n 2`) each worker has one of the machine's two cores: its
+# Snakemake runs get one core and torch one thread, so two workers never put four threads on two
+# cores (2 threads help only when nothing else shares the cores). A test that needs two jobs at
+# once passes its own --cores.
+XDIST_WORKER = os.environ.get("PYTEST_XDIST_WORKER")
+CORES = "1" if XDIST_WORKER else "2"
+
+
 def snakemake_env() -> dict:
     """The environment for a Snakemake subprocess: the `srfpipe` script of this interpreter on PATH."""
     env = dict(os.environ)
     env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
+    if XDIST_WORKER:
+        env["OMP_NUM_THREADS"] = "1"
     return env
+
+
+@pytest.fixture(scope="session", autouse=True)
+def one_torch_thread_per_worker():
+    if XDIST_WORKER:
+        import torch
+
+        torch.set_num_threads(1)
 
 
 class Workflow:
@@ -45,8 +63,8 @@ class Workflow:
 
     def run(self, *args: str, check: bool = True) -> subprocess.CompletedProcess:
         """Run snakemake on the repo's Snakefile in this work directory; output captured."""
-        cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "-d", str(self.root),
-               "--cores", "2", *args]
+        cores = () if "--cores" in args else ("--cores", CORES)
+        cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "-d", str(self.root), *cores, *args]
         result = subprocess.run(cmd, capture_output=True, text=True, env=snakemake_env(), cwd=self.root)
         if check and result.returncode != 0:
             logs = "\n".join(

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tests.conftest import REPO, snakemake_env
+from tests.conftest import CORES, REPO, snakemake_env
 
 # What "halfway" looks like for each stage: the hidden partial artifact of create_artifact exists
 # (the stage is writing), or, for training, a checkpoint has been written.
@@ -34,7 +34,7 @@ HALFWAY = {
 
 def snakemake_command(root: Path, *targets: str) -> list[str]:
     return [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "-d", str(root),
-            "--cores", "2", *targets]
+            "--cores", CORES, *targets]
 
 
 def _children(pid: int) -> list[int]:

@@ -153,7 +153,7 @@ def test_two_identical_scenes_built_at_once_are_bitwise_equal(workflow):
     scene = {key: value for key, value in FAULT_SCENE.items() if key not in ("train", "occupancy")}
     workflow.write_scene("left", scene)
     workflow.write_scene("right", scene)
-    workflow.run("results/left/labels.zarr", "results/right/labels.zarr")
+    workflow.run("--cores", "2", "results/left/labels.zarr", "results/right/labels.zarr")
     results = workflow.root / "results"
     for name in ("poses.zarr", "images.zarr", "masks/apple.zarr", "labels.zarr"):
         arrays = compare_artifacts(results / "left" / name, results / "right" / name)
