@@ -17,22 +17,37 @@ config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 _OPTS = dict(parallel=True, cache=True, nogil=True, fastmath=False)
 
 
+@njit(inline="always")
+def grid_coordinates(points, m, origin, inv_v):
+    """Point m in voxel units from the grid's min corner (x, y, z): voxel i spans [i, i + 1)."""
+    return ((points[m, 0] - origin[0]) * inv_v, (points[m, 1] - origin[1]) * inv_v,
+            (points[m, 2] - origin[2]) * inv_v)
+
+
+@njit(inline="always")
+def inside_grid(gx, gy, gz, nx, ny, nz):
+    """Whether voxel coordinates lie in the grid (False for NaN: every comparison fails)."""
+    return gx >= 0 and gy >= 0 and gz >= 0 and gx < nx and gy < ny and gz < nz
+
+
+@njit(inline="always")
+def any_nan(gx, gy, gz):
+    return gx != gx or gy != gy or gz != gz
+
+
 @njit(**_OPTS)
 def nearest_u8(points, grid, origin, inv_v, out):
     """out[m] = grid value of the voxel containing points[m], 0 outside."""
     nz, ny, nx = grid.shape
     flat = grid.reshape(-1)
-    ox, oy, oz = origin[0], origin[1], origin[2]
     bad = 0
     for m in prange(points.shape[0]):
-        gx = (points[m, 0] - ox) * inv_v
-        gy = (points[m, 1] - oy) * inv_v
-        gz = (points[m, 2] - oz) * inv_v
-        if gx >= 0 and gy >= 0 and gz >= 0 and gx < nx and gy < ny and gz < nz:
+        gx, gy, gz = grid_coordinates(points, m, origin, inv_v)
+        if inside_grid(gx, gy, gz, nx, ny, nz):
             out[m] = flat[(int(gz) * ny + int(gy)) * nx + int(gx)]
         else:
             out[m] = 0
-            if gx != gx or gy != gy or gz != gz:
+            if any_nan(gx, gy, gz):
                 bad += 1
     return bad
 
@@ -43,17 +58,15 @@ def nearest_channels_u8(points, grid, origin, inv_v, out):
     nz, ny, nx, nc = grid.shape
     bad = 0
     for m in prange(points.shape[0]):
-        gx = (points[m, 0] - origin[0]) * inv_v
-        gy = (points[m, 1] - origin[1]) * inv_v
-        gz = (points[m, 2] - origin[2]) * inv_v
-        if gx >= 0 and gy >= 0 and gz >= 0 and gx < nx and gy < ny and gz < nz:
+        gx, gy, gz = grid_coordinates(points, m, origin, inv_v)
+        if inside_grid(gx, gy, gz, nx, ny, nz):
             iz, iy, ix = int(gz), int(gy), int(gx)
             for c in range(nc):
                 out[m, c] = grid[iz, iy, ix, c]
         else:
             for c in range(nc):
                 out[m, c] = 0
-            if gx != gx or gy != gy or gz != gz:
+            if any_nan(gx, gy, gz):
                 bad += 1
     return bad
 
@@ -86,13 +99,11 @@ def trilinear_channels_u8(points, grid, origin, inv_v, scale, out):
     nz, ny, nx, nc = grid.shape
     bad = 0
     for m in prange(points.shape[0]):
-        gx = (points[m, 0] - origin[0]) * inv_v
-        gy = (points[m, 1] - origin[1]) * inv_v
-        gz = (points[m, 2] - origin[2]) * inv_v
-        if not (gx >= 0 and gy >= 0 and gz >= 0 and gx < nx and gy < ny and gz < nz):
+        gx, gy, gz = grid_coordinates(points, m, origin, inv_v)
+        if not inside_grid(gx, gy, gz, nx, ny, nz):
             for c in range(nc):
                 out[m, c] = 0
-            if gx != gx or gy != gy or gz != gz:
+            if any_nan(gx, gy, gz):
                 bad += 1
             continue
         x0, x1, fx = axis_corners(gx - 0.5, nx)
@@ -121,12 +132,10 @@ def trilinear_f32(points, grid, origin, inv_v, out):
     nz, ny, nx = grid.shape
     bad = 0
     for m in prange(points.shape[0]):
-        gx = (points[m, 0] - origin[0]) * inv_v
-        gy = (points[m, 1] - origin[1]) * inv_v
-        gz = (points[m, 2] - origin[2]) * inv_v
-        if not (gx >= 0 and gy >= 0 and gz >= 0 and gx < nx and gy < ny and gz < nz):
+        gx, gy, gz = grid_coordinates(points, m, origin, inv_v)
+        if not inside_grid(gx, gy, gz, nx, ny, nz):
             out[m] = 0
-            if gx != gx or gy != gy or gz != gz:
+            if any_nan(gx, gy, gz):
                 bad += 1
             continue
         x0, x1, fx = axis_corners(gx - 0.5, nx)
