@@ -97,7 +97,7 @@ def parse_overrides(assignments: list[str]) -> dict:
     return overrides
 
 
-def scene_configs(names: list[str], quick: bool, overrides: dict | None = None) -> dict[str, dict]:
+def scene_configs(names: list[str], quick: bool, candidate: dict | None = None) -> dict[str, dict]:
     scenes = {}
     for name in names:
         base, overrides = VARIANTS.get(name, (name, {}))
@@ -113,7 +113,7 @@ def scene_configs(names: list[str], quick: bool, overrides: dict | None = None) 
             scene.setdefault("train", {})["time_budget"] = 60
         else:  # the field's weights at 5 minutes: the panel's srfpipe_psnr_5min, from the same run
             scene.setdefault("train", {})["snapshot_seconds"] = [FIVE_MINUTES]
-        for section, values in (overrides or {}).items():
+        for section, values in (candidate or {}).items():
             scene[section] = {**scene.get(section, {}), **values}
         scenes[name] = scene
     return scenes
@@ -344,6 +344,18 @@ def refresh_panel(path: Path) -> int:
     return 0
 
 
+def equal_steps(scenes: dict[str, dict], baseline_file: Path) -> None:
+    """Each scene trains for the steps its defaults reached (captures.json `steps`), time budget off:
+    a slower or faster machine than the one that measured the defaults compares step for step."""
+    baseline = json.loads(baseline_file.read_text())["scenes"]
+    for name, scene in scenes.items():
+        steps = (baseline.get(name) or {}).get("steps")
+        if not steps:
+            raise SystemExit(f"--equal-steps: {baseline_file} has no steps for {name}")
+        scene["train"] = {**scene.get("train", {}), "iterations": int(steps), "time_budget": 0}
+        scene["train"].pop("snapshot_seconds", None)
+
+
 CHANGE_KEYS = ("psnr", "psnr_object", "miou_classes", "train_view_psnr", "generalization_gap_db")
 # issue "captures nobody tuned for": a change that costs any capture more than this is a scene option
 DEFAULT_TOLERANCE_DB = 0.3
@@ -385,6 +397,9 @@ def main() -> int:
                         help="a candidate default, set in every scene (repeatable): the run writes "
                              "captures_candidate.json with each capture's change against captures.json's panel, "
                              "in its own work directory (captures-candidate)")
+    parser.add_argument("--equal-steps", action="store_true",
+                        help="with --set: train each capture for the steps its captures.json entry reached in its "
+                             "10 minutes (time budget off), so the candidate compares with the defaults on any machine")
     parser.add_argument("--masks-only", action="store_true",
                         help="build the scenes up to labels.zarr (no training) and add the masks' own mIoU against "
                              "ground truth (masks_miou_classes) to captures.json")
@@ -404,6 +419,11 @@ def main() -> int:
     if overrides and args.workdir == parser.get_default("workdir"):
         args.workdir = args.workdir.with_name("captures-candidate")
     scenes = scene_configs(args.scenes, args.quick, overrides)
+    if args.equal_steps:
+        if not overrides:
+            parser.error("--equal-steps compares a candidate (--set) with the defaults: give --set")
+        equal_steps(scenes, result_path("captures", args.quick))
+        overrides = {**overrides, "equal_steps": True}
     write_workdir(args.workdir, scenes, "occupancy")
     for name in scenes:
         if name == "plant-small":  # its masks are made from its generated capture
