@@ -344,6 +344,14 @@ def refresh_panel(path: Path) -> int:
     return 0
 
 
+def candidate_slug(overrides: dict) -> str:
+    """The candidate's file-name part: train.distortion-0.01 (and -equal-steps), one file per candidate."""
+    parts = [f"{section}.{key}-{value}" for section, values in overrides.items() if isinstance(values, dict)
+             for key, value in values.items()]
+    parts += ["equal-steps"] if overrides.get("equal_steps") else []
+    return "_".join(parts).replace("/", "-").replace(" ", "")
+
+
 def equal_steps(scenes: dict[str, dict], baseline_file: Path) -> None:
     """Each scene trains for the steps its defaults reached (captures.json `steps`), time budget off:
     a slower or faster machine than the one that measured the defaults compares step for step."""
@@ -356,7 +364,7 @@ def equal_steps(scenes: dict[str, dict], baseline_file: Path) -> None:
         scene["train"].pop("snapshot_seconds", None)
 
 
-CHANGE_KEYS = ("psnr", "psnr_object", "miou_classes", "train_view_psnr", "generalization_gap_db")
+CHANGE_KEYS = ("psnr", "ssim", "psnr_object", "miou_classes", "train_view_psnr", "generalization_gap_db")
 # issue "captures nobody tuned for": a change that costs any capture more than this is a scene option
 DEFAULT_TOLERANCE_DB = 0.3
 
@@ -395,7 +403,7 @@ def main() -> int:
                              "finished COLMAP refinement after a schema default changed")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                         help="a candidate default, set in every scene (repeatable): the run writes "
-                             "captures_candidate.json with each capture's change against captures.json's panel, "
+                             "captures_candidate_<candidate>.json with each capture's change against captures.json's panel, "
                              "in its own work directory (captures-candidate)")
     parser.add_argument("--equal-steps", action="store_true",
                         help="with --set: train each capture for the steps its captures.json entry reached in its "
@@ -446,7 +454,7 @@ def main() -> int:
         for name in scenes:
             if f"{name}-reference" in references and (results / name / "srf.zarr").exists():
                 per_scene[name]["reference"] = reference_report(args.workdir, name)
-    previous_file = result_path("captures_candidate" if overrides else "captures", args.quick)
+    previous_file = result_path(f"captures_candidate_{candidate_slug(overrides)}" if overrides else "captures", args.quick)
     measured_now = sorted(per_scene)
     previous_configs = {}
     previous_report = json.loads(previous_file.read_text()) if previous_file.exists() else {}
