@@ -43,8 +43,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from common import (REPO, earlier_measurements, machine_info, merge, renamed_paths, result_path, rule_seconds, run_command,
-                    run_workflow, write_result, write_workdir)
+from common import (REPO, earlier_measurements, holdout_every, machine_info, measured_steps, merge, renamed_paths,
+                    result_path, rule_seconds, run_command, run_workflow, write_result, write_workdir)
 
 SHARED = (REPO / ".." / "shared" / "data").resolve()
 FOX = SHARED / "fox"
@@ -141,6 +141,14 @@ def prepare_soft_partial_masks(workdir: Path, name: str, scene: dict) -> Path:
             (out / prompt).mkdir(parents=True, exist_ok=True)
             cv2.imwrite(str(out / prompt / path.name), np.round(255 * np.clip(soft, 0, 1)).astype(np.uint8))
     return out
+
+
+def prepare_variants(workdir: Path, scenes: dict[str, dict], extra: tuple) -> None:
+    """What a generated variant needs before the workflow builds it: plant-small's masks are made
+    from its own generated capture."""
+    if "plant-small" in scenes:
+        run_workflow(workdir, ["results/plant-small/capture"], log=workdir / "snakemake.log", extra=extra)
+        prepare_soft_partial_masks(workdir, "plant-small", scenes["plant-small"])
 
 
 def box_volume(box) -> float:
@@ -302,14 +310,13 @@ def mask_ceiling(results: Path, scene: dict) -> dict:
     """The composited masks of a capture with ground truth against that truth on its labelled training
     views (`srfpipe.evaluate.mask_agreement`, as evaluate reports it), from labels.zarr alone."""
     from srfpipe.evaluate import mask_agreement
-    from srfpipe.settings import EvaluateSettings
     from srfpipe.srf.data import load_posed_images, split_views
 
     data = load_posed_images(results / "images.zarr", results / "labels.zarr")
     if data.gt_label is None or not data.classes:
         return {}
-    train, _ = split_views(data.count, EvaluateSettings.from_options(scene.get("evaluate") or {}).holdout_every)
-    return mask_agreement(data, train if data.labelled is None else train[data.labelled[train]])
+    train, _ = split_views(data.count, holdout_every(scene))
+    return mask_agreement(data, train)
 
 
 def measure_masks_only(workdir: Path, names: list[str], path: Path, extra: tuple) -> int:
@@ -317,10 +324,7 @@ def measure_masks_only(workdir: Path, names: list[str], path: Path, extra: tuple
     (miou_masks_gt...) to its entry in captures.json, keeping everything else."""
     scenes = scene_configs(names, quick=False)
     write_workdir(workdir, scenes, "occupancy")
-    for name in scenes:
-        if name == "plant-small":
-            run_workflow(workdir, [f"results/{name}/capture"], log=workdir / "snakemake.log", extra=extra)
-            prepare_soft_partial_masks(workdir, name, scenes[name])
+    prepare_variants(workdir, scenes, extra)
     run_workflow(workdir, [f"results/{name}/labels.zarr" for name in scenes], log=workdir / "snakemake.log", extra=extra)
     report = json.loads(path.read_text())
     for name, scene in scenes.items():
@@ -352,15 +356,11 @@ def candidate_slug(overrides: dict) -> str:
     return "_".join(parts).replace("/", "-").replace(" ", "")
 
 
-def equal_steps(scenes: dict[str, dict], baseline_file: Path) -> None:
+def equal_steps(scenes: dict[str, dict], quick: bool) -> None:
     """Each scene trains for the steps its defaults reached (captures.json `steps`), time budget off:
     a slower or faster machine than the one that measured the defaults compares step for step."""
-    baseline = json.loads(baseline_file.read_text())["scenes"]
     for name, scene in scenes.items():
-        steps = (baseline.get(name) or {}).get("steps")
-        if not steps:
-            raise SystemExit(f"--equal-steps: {baseline_file} has no steps for {name}")
-        scene["train"] = {**scene.get("train", {}), "iterations": int(steps), "time_budget": 0}
+        scene["train"] = {**scene.get("train", {}), "iterations": measured_steps(name, quick), "time_budget": 0}
         scene["train"].pop("snapshot_seconds", None)
 
 
@@ -430,14 +430,10 @@ def main() -> int:
     if args.equal_steps:
         if not overrides:
             parser.error("--equal-steps compares a candidate (--set) with the defaults: give --set")
-        equal_steps(scenes, result_path("captures", args.quick))
+        equal_steps(scenes, args.quick)
         overrides = {**overrides, "equal_steps": True}
     write_workdir(args.workdir, scenes, "occupancy")
-    for name in scenes:
-        if name == "plant-small":  # its masks are made from its generated capture
-            run_workflow(args.workdir, [f"results/{name}/capture"], log=args.workdir / "snakemake.log",
-                         extra=tuple(args.snakemake_args))
-            prepare_soft_partial_masks(args.workdir, name, scenes[name])
+    prepare_variants(args.workdir, scenes, tuple(args.snakemake_args))
     targets = [f"results/{name}/{artifact}" for name in scenes for artifact in ("eval", "occupancy.zarr")]
     try:  # --keep-going: one failing scene must not hide the others' numbers
         seconds = run_workflow(args.workdir, targets, log=args.workdir / "snakemake.log", extra=("--keep-going", *args.snakemake_args))

@@ -116,6 +116,15 @@ def result_path(name: str, quick: bool) -> Path:
     return RESULTS / f"{name}{'_quick' if quick else ''}.json"
 
 
+def measured_steps(name: str, quick: bool = False) -> int:
+    """The training steps the defaults' build of capture `name` reached in its 10 minutes (captures.json)."""
+    path = result_path("captures", quick)
+    steps = (json.loads(path.read_text())["scenes"].get(name) or {}).get("steps")
+    if not steps:
+        raise SystemExit(f"{path} has no steps for {name}: run benchmarks/captures.py --scenes {name} first")
+    return int(steps)
+
+
 def earlier_measurements(previous: dict[str, dict], measured_now) -> dict[str, dict]:
     """The per-scene entries of a previous result file that this run did not measure, marked
     `measured_in_an_earlier_run` (a run of some scenes keeps the others' last measurement)."""

@@ -48,7 +48,8 @@ import numpy as np
 
 import yaml
 
-from common import REPO, holdout_every, machine_info, merge, result_path, rule_seconds, run_workflow, write_result, write_workdir
+from common import (REPO, holdout_every, machine_info, measured_steps, merge, result_path, rule_seconds, run_workflow,
+                    write_result, write_workdir)
 
 SHARED = (REPO / ".." / "shared" / "data").resolve()
 FOX = SHARED / "fox"
@@ -115,12 +116,6 @@ def orchard_video(workdir: Path, quick: bool) -> dict:
     return entry
 
 
-def posed_steps(name: str) -> int:
-    """The training steps the posed build of `name` reached in its 10 minutes (captures.json)."""
-    scenes = json.loads((REPO / "benchmarks" / "results" / "captures.json").read_text())["scenes"]
-    return int(scenes[name]["steps"])
-
-
 def fox_sfm(workdir: Path) -> dict:
     """The fox's photos with transforms.json ignored (`source.format: images`), through the
     workflow; the poses compared with that file's, then the pipeline from the recovered poses."""
@@ -133,7 +128,7 @@ def fox_sfm(workdir: Path) -> dict:
     scene = merge(scene, {"source": {"format": "images", "path": str(FOX)}, "poses": {}})
     scene["poses"].pop("refine", None)  # SfM's own bundle adjustment replaces the refinement
     # the posed fox's steps (captures.json), time budget off: the two PSNRs compare on any machine
-    steps = posed_steps("fox")
+    steps = measured_steps("fox")
     scene["train"] = {**scene.get("train", {}), "iterations": steps, "time_budget": 0}
     write_workdir(workdir, {name: scene}, "eval")
     started = time.perf_counter()

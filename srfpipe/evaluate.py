@@ -287,8 +287,7 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
             result.update(_iou_metrics(conf, ["background"] + data.classes, ""))
             if conf_gt is not None:
                 result.update(_iou_metrics(conf_gt, ["background"] + data.classes, "_gt"))
-                labelled_train = train if data.labelled is None else train[data.labelled[train]]
-                result.update(mask_agreement(data, labelled_train))
+                result.update(mask_agreement(data, train))
             result["labelled_frames"] = int(data.count if data.labelled is None else data.labelled.sum())
             if len(unlabelled_chosen) and conf_gt is not None:
                 # sparse labels: the training views that had no mask, against the capture's truth
@@ -318,12 +317,14 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
     return result
 
 
-def mask_agreement(data, views) -> dict:
-    """The composited labels of `views` against the capture's ground truth (`PosedImages` with
-    gt_label): iou_masks_gt, miou_masks_gt and miou_masks_gt_classes, the ceiling the masks set."""
+def mask_agreement(data, train) -> dict:
+    """The composited labels of the training views `train` that had masks against the capture's
+    ground truth (`PosedImages` with gt_label): iou_masks_gt, miou_masks_gt and
+    miou_masks_gt_classes, the ceiling the masks set."""
     from srfpipe.srf import metrics
     from srfpipe.srf.data import remap_ground_truth
 
+    views = train if data.labelled is None else train[data.labelled[train]]
     labels = len(data.classes) + 1
     conf = np.zeros((labels, labels), np.int64)
     for index in views:
