@@ -291,6 +291,9 @@ class TrainSettings(SettingsSection):
     lr_final begins"""
     precision: str = 'auto'
     """auto = bf16/fp16 autocast on CUDA, fp32 on the CPU"""
+    cuda_graph: bool = True
+    """on CUDA, replay each training step as one CUDA graph (the dense grid, batches up to 8192
+    rays; not with fp16 or tv_samples, which read values back on the host)"""
     encoding: str = 'auto'
     """auto = the dense grid, which measured best on the CPU and on an H100
     (srfpipe.srf.model.default_encoding)"""

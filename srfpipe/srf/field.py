@@ -125,6 +125,7 @@ class SemanticField(nn.Module):
         self.register_buffer("box_min", torch.tensor(c["box_min"], dtype=torch.float32))
         self.register_buffer("box_max", torch.tensor(c["box_max"], dtype=torch.float32))
         self.contraction = bool(c["contraction"])
+        self.static_shapes = False  # SRFModel.use_static_shapes: every lookup the same size (CUDA graphs)
         self.inner = build_encoding(c["inner"], device)
         self.outer = build_encoding(c["outer"], device) if c.get("outer") else None
         if self.outer is not None and self.outer.output_dim != self.inner.output_dim:
@@ -189,6 +190,12 @@ class SemanticField(nn.Module):
         if outer is None:
             return inner(contract(u) * 0.5), covered
         inside = (u.abs() <= 1.0).all(dim=-1)
+        if self.static_shapes:
+            # both grids read at every point and the right one kept: no shape depends on the data
+            # (a CUDA graph replays it); the unused reads get zero gradient
+            values_in = inner(u)
+            values_out = outer(contract(u) * 0.5).to(values_in.dtype)
+            return torch.where(inside.unsqueeze(-1), values_in, values_out), covered
         idx_in = inside.nonzero().squeeze(1)
         idx_out = (~inside).nonzero().squeeze(1)
         if idx_out.numel() == 0:

@@ -252,8 +252,8 @@ class MetricsLog(Hook):
             "step": run.step, "seconds": round(run.seconds, 3), "loss": float(run.loss.detach()),
             "photometric": photo, "semantic": float(run.terms["semantic"].detach()),
             "psnr": metrics.psnr_from_mse(photo / 3.0),
-            "samples_per_ray": run.outputs["samples"] / batch,
-            "shaded_per_ray": run.outputs.get("shaded", run.outputs["samples"]) / batch,
+            "samples_per_ray": float(run.outputs["samples"]) / batch,
+            "shaded_per_ray": float(run.outputs.get("shaded", run.outputs["samples"])) / batch,
             "occupied": run.model.occupancy.occupied_fraction(),
         }
         for key, value in record.items():

@@ -30,11 +30,13 @@ def semantic_loss(
     per_ray = F.binary_cross_entropy_with_logits(
         logits.float(), labels.float(), reduction="none"
     ).sum(dim=-1)
-    if valid is not None:
-        per_ray = per_ray[valid]
     if per_ray.numel() == 0:
         return logits.sum() * 0.0
-    return per_ray.mean()
+    if valid is None:
+        return per_ray.mean()
+    # a masked mean, not a boolean index: no host sync on CUDA (and a CUDA graph can replay it)
+    # (where, not a product: an unlabelled ray's value, whatever it is, never reaches the sum)
+    return torch.where(valid, per_ray, 0.0).sum() / valid.float().sum().clamp_min(1.0)
 
 
 def total_loss(

@@ -16,7 +16,7 @@ import torch.nn as nn
 from srfpipe.memory import check_allocation
 from srfpipe.srf import rendering
 from srfpipe.srf.field import SemanticField, grid_resolution
-from srfpipe.srf.sampling import OccupancyGrid, SamplerSettings, generate_intervals, pack
+from srfpipe.srf.sampling import OccupancyGrid, RaySamples, SamplerSettings, box_extent, generate_intervals, pack
 
 # A sample "carries weight" above FLOATER_WEIGHT (the fog criterion of the any-capture issue); it
 # is a floater when it lies more than FLOATER_CELLS grid cells (plus its own length) from the
@@ -207,11 +207,25 @@ class SRFModel(nn.Module):
             occ["outer_resolution"], step=self.settings.step, threshold=occ["threshold"], decay=occ["decay"],
         )
         self.color_threshold = float(config["color_threshold"])
+        self.extent = box_extent(config["box_min"], config["box_max"])
+        self.capacities = None  # set by use_static_shapes
+
+    def use_static_shapes(self, capacities: tuple[int, int] | None) -> None:
+        """Training steps whose every tensor has a size fixed by the batch, not by the data, so a
+        CUDA graph can replay them (srf/graphed.py). `capacities` = (kept, shaded): the field's
+        density is read at up to `kept` of the candidate intervals the occupancy grid keeps, the
+        colour and semantic heads run at up to `shaded` significant samples, each padded to that
+        size (the outputs `samples` and `shaded` count how many there were; beyond a capacity,
+        the last ones count as empty, or go unshaded). None: back to packed, data-sized steps."""
+        static = capacities is not None
+        self.capacities = tuple(int(c) for c in capacities) if static else None
+        self.field.static_shapes = static
+        self.occupancy.static_shapes = static
 
     def sample(self, origins, directions, jitter=None):
         """Candidate intervals culled by the occupancy grid, packed (see sampling.pack)."""
         t_start, t_end = generate_intervals(
-            origins, directions, self.field.box_min, self.field.box_max, self.settings, jitter
+            origins, directions, self.field.box_min, self.field.box_max, self.settings, jitter, self.extent
         )
         keep = t_end > t_start
         candidates = keep.sum(dim=1)
@@ -227,6 +241,8 @@ class SRFModel(nn.Module):
         """Render rays (R, 3) in the scene frame. Returns rgb (R, 3), logits (R, C), depth (R,)
         (scene-frame distance along the ray), accumulation (R,), samples (number evaluated);
         in training with `box_accumulation`, also the opacity gathered inside the box alone (R,)."""
+        if self.training and self.capacities is not None:
+            return self._forward_static(origins, directions, image_index, jitter, box_accumulation)
         field = self.field
         samples = self.sample(origins, directions, jitter)
         mask = samples.mask
@@ -239,7 +255,6 @@ class SRFModel(nn.Module):
             sigma, h = field.density(points)
         sigma_pad = torch.zeros(n, k, device=sigma.device).masked_scatter(mask, sigma.float())
         weights = rendering.render_weights(sigma_pad, samples.delta)
-        acc = rendering.accumulation(weights)
         if field.density_grid:
             # colour and semantics only where a sample can matter: w_k > threshold (occluded
             # samples and near-empty space are skipped; their contribution is below the threshold)
@@ -256,29 +271,9 @@ class SRFModel(nn.Module):
         c = logits.shape[-1]
         rgb_pad = torch.zeros(n, k, 3, device=rgb.device).masked_scatter(colour_mask.unsqueeze(-1), rgb.float())
         sem_pad = torch.zeros(n, k, c, device=logits.device).masked_scatter(colour_mask.unsqueeze(-1), logits.float())
-        color = rendering.composite_background(
-            rendering.accumulate(weights, rgb_pad), acc, field.background(directions)
-        )
-        # Eq. 3 with detached weights: the semantic loss reaches only F_s (and background logits)
-        sem_weights = weights.detach()
-        sem_logits = rendering.composite_background(
-            rendering.accumulate(sem_weights, sem_pad), sem_weights.sum(-1),
-            field.background_logits.expand(n, c),
-        )
-        out = {
-            "rgb": color,
-            "logits": sem_logits,
-            "depth": rendering.expected_depth(weights, samples.t_mid),
-            "accumulation": acc,
-            "samples": int(rays.numel()),
-            "shaded": int(shade_rays.numel()),
-        }
-        if self.training:
-            # distances normalized as s = t / (t + D), D the box's largest side: linear near the
-            # box, bounded in the contracted shell, so far samples cannot dominate the loss
-            d = float(max(b - a for a, b in zip(self.config["box_min"], self.config["box_max"])))
-            out["distortion"] = rendering.distortion(
-                weights, samples.t_start / (samples.t_start + d), samples.t_end / (samples.t_end + d)).mean()
+        out = self._composite(directions, samples, weights, rgb_pad, sem_pad)
+        out["samples"] = int(rays.numel())
+        out["shaded"] = int(shade_rays.numel())
         if self.training and box_accumulation:
             # opacity the model box alone gives each ray (the contracted shell excluded): the
             # background-opacity loss asks it to be zero where the masks see none of the classes;
@@ -294,6 +289,71 @@ class SRFModel(nn.Module):
             # occupancy grid kept (the field is evaluated at these only)
             out["candidate_samples"] = samples.candidates.float()
             out["kept_samples"] = mask.sum(dim=-1).float()
+        return out
+
+    def _composite(self, directions, samples: RaySamples, weights, rgb_pad, sem_pad) -> dict:
+        """Eq. 1 and Eq. 3 over the padded samples: rgb, logits, depth, accumulation (and in
+        training the distortion loss)."""
+        field = self.field
+        n, c = weights.shape[0], sem_pad.shape[-1]
+        acc = rendering.accumulation(weights)
+        color = rendering.composite_background(
+            rendering.accumulate(weights, rgb_pad), acc, field.background(directions)
+        )
+        # Eq. 3 with detached weights: the semantic loss reaches only F_s (and background logits)
+        sem_weights = weights.detach()
+        sem_logits = rendering.composite_background(
+            rendering.accumulate(sem_weights, sem_pad), sem_weights.sum(-1),
+            field.background_logits.expand(n, c),
+        )
+        out = {
+            "rgb": color,
+            "logits": sem_logits,
+            "depth": rendering.expected_depth(weights, samples.t_mid),
+            "accumulation": acc,
+        }
+        if self.training:
+            # distances normalized as s = t / (t + D), D the box's largest side: linear near the
+            # box, bounded in the contracted shell, so far samples cannot dominate the loss
+            d = float(max(b - a for a, b in zip(self.config["box_min"], self.config["box_max"])))
+            out["distortion"] = rendering.distortion(
+                weights, samples.t_start / (samples.t_start + d), samples.t_end / (samples.t_end + d)).mean()
+        return out
+
+    def _forward_static(self, origins, directions, image_index, jitter, box_accumulation) -> dict:
+        """`forward` in training with sizes fixed by the batch (see use_static_shapes): the same
+        rendering, as culled intervals carry sigma = 0 and length 0 in place of being removed, and
+        a sample below the colour threshold adds nothing either way."""
+        field = self.field
+        t_start, t_end = generate_intervals(
+            origins, directions, field.box_min, field.box_max, self.settings, jitter, self.extent)
+        n, k = t_start.shape
+        end = n * k
+        kept_capacity, shade_capacity = self.capacities
+        points = (origins[:, None, :] + directions[:, None, :] * (0.5 * (t_start + t_end))[..., None]).reshape(-1, 3)
+        mask = (t_end > t_start) & self.occupancy.occupied(points).view(n, k)
+        samples = RaySamples(t_start, t_end, mask)
+        # the kept intervals first, padded to the capacity with an index one past the end, whose
+        # row is dropped below (a scatter needs no count read back from the device)
+        kept = torch.nonzero_static(mask.reshape(-1), size=kept_capacity, fill_value=end).squeeze(1)
+        sigma = field.sigma(points[kept.clamp_max(end - 1)]).float()
+        sigma = torch.zeros(end + 1, device=sigma.device).index_copy(0, kept, sigma)[:end].view(n, k)
+        weights = rendering.render_weights(sigma, samples.delta)
+        significant = ((weights.detach() > self.color_threshold) & mask).reshape(-1)
+        index = torch.nonzero_static(significant, size=shade_capacity, fill_value=end).squeeze(1)
+        gather = index.clamp_max(end - 1)
+        h = field.latent(points[gather])
+        rgb = field.color(h, directions, image_index, ray_index=torch.div(gather, k, rounding_mode="floor"))
+        logits = field.semantics(h, points[gather])
+        c = logits.shape[-1]
+        rgb_pad = torch.zeros(end + 1, 3, device=rgb.device).index_copy(0, index, rgb.float())[:end].view(n, k, 3)
+        sem_pad = torch.zeros(end + 1, c, device=rgb.device).index_copy(0, index, logits.float())[:end].view(n, k, c)
+        out = self._composite(directions, samples, weights, rgb_pad, sem_pad)
+        out["samples"] = mask.sum()
+        out["shaded"] = significant.sum()
+        if box_accumulation:
+            in_box = (field.box_coordinates(points).abs() <= 1.0).all(dim=-1).view(n, k)
+            out["box_accumulation"] = (weights * in_box).sum(dim=-1)
         return out
 
     @torch.no_grad()

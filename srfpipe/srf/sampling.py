@@ -97,15 +97,26 @@ class SamplerSettings:
     before_samples: int = 16
 
 
-def generate_intervals(origins, directions, box_min, box_max, settings: SamplerSettings, jitter=None):
-    """All candidate intervals (t_start, t_end) (R, K) before occupancy culling, sorted along t."""
+def box_extent(box_min, box_max) -> tuple[float, float]:
+    """(diagonal, half the largest side) of the box: the two lengths `generate_intervals` needs as
+    numbers (the model passes them from its config, so a CUDA step never reads them back)."""
+    size = torch.as_tensor(box_max, dtype=torch.float32, device="cpu") - torch.as_tensor(
+        box_min, dtype=torch.float32, device="cpu")  # float32 as the model's box buffers
+    return float(torch.linalg.norm(size)), float(size.amax()) * 0.5
+
+
+def generate_intervals(origins, directions, box_min, box_max, settings: SamplerSettings, jitter=None,
+                       extent: tuple[float, float] | None = None):
+    """All candidate intervals (t_start, t_end) (R, K) before occupancy culling, sorted along t.
+
+    `extent`: box_extent(box_min, box_max), when the caller has it as numbers."""
     n = origins.shape[0]
     jitter = torch.full((n,), 0.5, device=origins.device) if jitter is None else jitter
     t_enter, t_exit = ray_aabb(origins, directions, box_min, box_max)
     t0 = t_enter.clamp_min(settings.near)
     hit = t_exit > t0
     t1 = torch.where(hit, t_exit, t0)
-    diagonal = float(torch.linalg.norm(box_max - box_min))
+    diagonal, scale = extent if extent is not None else box_extent(box_min.cpu(), box_max.cpu())
     count_in = int(math.ceil(diagonal / settings.step)) + 1
     parts = [_intervals(_fixed_step_edges(t0, t1, settings.step, count_in, jitter))]
     if settings.contraction:
@@ -113,7 +124,6 @@ def generate_intervals(origins, directions, box_min, box_max, settings: SamplerS
         before_end = torch.where(hit, t0, near)  # a ray that misses the box is all "beyond"
         if settings.before_samples > 0:
             parts.insert(0, _intervals(_uniform_edges(near, before_end, settings.before_samples, jitter)))
-        scale = float((box_max - box_min).amax()) * 0.5
         after_start = torch.where(hit, t1, near)
         parts.append(_intervals(_disparity_edges(after_start, settings.far, scale, settings.outer_samples, jitter)))
     t_start = torch.cat([p[0] for p in parts], dim=1)
@@ -203,6 +213,10 @@ class OccupancyGrid(nn.Module):
         self.seen_resolution = SEEN_REFINEMENT * self.outer_resolution if self.contraction else 1
         self.register_buffer("seen0", torch.ones(n0, dtype=torch.bool))
         self.register_buffer("seen1", torch.ones(self.seen_resolution**3, dtype=torch.bool))
+        # on the grid's device: a tensor built from a list each call would be a host copy (which a
+        # CUDA graph cannot replay)
+        self.register_buffer("_res0", torch.tensor(self.resolution), persistent=False)
+        self.static_shapes = False  # SRFModel.use_static_shapes: every lookup the same size (CUDA graphs)
 
     def _u(self, x):
         centre = 0.5 * (self.box_min + self.box_max)
@@ -215,7 +229,7 @@ class OccupancyGrid(nn.Module):
         return u * half + centre
 
     def _index0(self, u):
-        res = torch.tensor(self.resolution, device=u.device)
+        res = self._res0
         cell = ((u + 1.0) * 0.5 * res).floor().long()
         cell = torch.minimum(cell.clamp_min(0), res - 1)
         return (cell[:, 0] * res[1] + cell[:, 1]) * res[2] + cell[:, 2]
@@ -231,6 +245,14 @@ class OccupancyGrid(nn.Module):
         u = self._u(x)
         inside = (u.abs() <= 1.0).all(dim=-1)
         result = self.binary0[self._index0(u)] & inside  # binary0 holds seen0 already
+        if self.contraction and self.static_shapes:
+            # both levels looked up for every point, no index of the outside ones: no shape
+            # depends on the data (a CUDA graph replays it), at the cost of the shell lookups
+            v = contract(u)
+            outer = self.binary1[self._index1(v)]
+            if not self.training:
+                outer = outer & self.seen1[self._index1(v, self.seen_resolution)]
+            return torch.where(inside, result, outer)
         if self.contraction:
             outside = (~inside).nonzero().squeeze(1)  # contract only what lies outside the box
             v = contract(u[outside])

@@ -169,10 +169,18 @@ def sample_batch(data, train_views, count: int, generator, device, focus=None, f
 
     With `focus` (object_pixels), round(focus_share * count) of the pixels are drawn from it.
     """
+    image, v, u = draw_pixels(data, train_views, count, generator, focus, focus_share)
+    origins, directions, rgb, labels = pixel_batch(data, image, v, u)
+    return (origins.to(device), directions.to(device), image.to(device), rgb.to(device),
+            None if labels is None else labels.to(device))
+
+
+def draw_pixels(data, train_views, count: int, generator, focus=None, focus_share: float = 0.0):
+    """(image, v, u) of `count` random pixels of the training views, on the generator's device
+    (`sample_batch`'s draws, in its order)."""
     import torch
 
     from srfpipe.device import randint
-    from srfpipe.srf.data import rays_for_pixels
 
     views = torch.as_tensor(train_views)
     focused = 0 if focus is None else int(round(focus_share * count))
@@ -184,12 +192,20 @@ def sample_batch(data, train_views, count: int, generator, device, focus=None, f
         pixel = pick % (data.height * data.width)
         image = torch.cat([image, pick // (data.height * data.width)])
         v, u = torch.cat([v, pixel // data.width]), torch.cat([u, pixel % data.width])
+    return image, v, u
+
+
+def pixel_batch(data, image, v, u):
+    """Rays, target rgb in [0, 1] and multi-hot labels of pixels (image, v, u), on the data's device."""
+    import torch
+
+    from srfpipe.srf.data import rays_for_pixels
+
     origins, directions = rays_for_pixels(data.poses_scene[image], data.intrinsics[image], u, v)
     rgb = data.images[image, v, u].float() / 255.0
     labels = (data.multihot[image, v, u].float() if data.multihot is not None
-              else torch.zeros(count, 0))
-    return (origins.to(device), directions.to(device), image.to(device), rgb.to(device),
-            None if labels is None else labels.to(device))
+              else torch.zeros(image.shape[0], 0, device=data.images.device))
+    return origins, directions, rgb, labels
 
 
 REAL_CAPTURE_APPEARANCE_DIM = 8
@@ -338,6 +354,7 @@ class TrainingRun:
     terms: dict = field(default_factory=dict)  # the last step's weighted loss terms, by name
     loss: Any = None  # their sum
     outputs: dict = field(default_factory=dict)  # the last step's render outputs
+    graphed: Any = None  # srf.graphed.GraphedSteps when the step is replayed as a CUDA graph
 
 
 CURVE_KEYS = ("step", "seconds", "loss", "photometric", "semantic", "psnr", "samples_per_ray", "shaded_per_ray",
@@ -375,12 +392,35 @@ def training_step(run: TrainingRun, step: int):
     generator = step_generator(s.seed, step)
     if step > 0 and step % s.occupancy_update_every == 0:
         model.occupancy.update(model.field.sigma, generator, all_cells=step < s.occupancy_warmup)
+        if run.graphed is not None:
+            run.graphed.check_capacity()
     progress = training_progress(step, s.iterations, run.seconds, s.time_budget)
     for group in run.optimizer.param_groups:
-        group["lr"] = learning_rate(progress, s.lr, s.lr_final, s.lr_hold) * group["lr_scale"]
-    origins, directions, image, rgb, labels = sample_batch(run.data, run.train_views, s.rays_per_batch, generator,
-                                                           run.device, run.focus, s.object_rays)
-    jitter = rand(s.rays_per_batch, generator, run.device)
+        lr = learning_rate(progress, s.lr, s.lr_final, s.lr_hold) * group["lr_scale"]
+        if hasattr(group["lr"], "fill_"):  # a CUDA graph's Adam reads it from the device (srf/graphed.py)
+            group["lr"].fill_(lr)
+        else:
+            group["lr"] = lr
+    if run.graphed is not None:
+        image, v, u = draw_pixels(run.data, run.train_views, s.rays_per_batch, generator, run.focus, s.object_rays)
+        jitter = rand(s.rays_per_batch, generator, "cpu")
+        try:
+            terms, loss, outputs = run.graphed.step(image, v, u, jitter)
+            run.watch.update(terms, loss)
+            return terms, loss, outputs
+        except RuntimeError as error:  # a capture CUDA refused: this run goes on step by step
+            cause = error.__cause__ or error.__context__
+            log.warning("recording the training step as a CUDA graph failed (%s%s); training step by step",
+                        str(error).splitlines()[0], f"; during: {str(cause).splitlines()[0]}" if cause else "")
+            log.debug("the failed capture", exc_info=True)
+            run.graphed.stop()
+            run.graphed = None
+        origins, directions, rgb, labels = (t.to(run.device) for t in pixel_batch(run.data, image, v, u))
+        image, jitter = image.to(run.device), jitter.to(run.device)
+    else:
+        origins, directions, image, rgb, labels = sample_batch(run.data, run.train_views, s.rays_per_batch, generator,
+                                                               run.device, run.focus, s.object_rays)
+        jitter = rand(s.rays_per_batch, generator, run.device)
     with run.autocast:
         outputs = model(origins, directions, image, jitter, box_accumulation=bool(s.background_opacity))
     valid = None if run.labelled_frames is None else run.labelled_frames[image]
@@ -435,6 +475,7 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
     from srfpipe.artifacts import read_provenance
     from srfpipe.device import choose_device
     from srfpipe.srf.data import load_posed_images, split_views
+    from srfpipe.srf.graphed import GraphedSteps, graph_unavailable
     from srfpipe.srf.model import SRFModel, build_model_config
 
     device = choose_device(settings.device)
@@ -471,6 +512,8 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
     if state is not None:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
+        for group in optimizer.param_groups:  # a CUDA graph's run saved its device-side settings
+            group["lr"], group["capturable"] = float(group["lr"]), False
         run.step, run.seconds = int(state["step"]), float(state["train_seconds"])
         run.resumed_from = run.step
         run.curve = {k: list(v) for k, v in state["curve"].items()}
@@ -482,6 +525,11 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
             path.unlink()
     run.watch = DivergenceWatch(run.step, device)
     model.train()
+    unavailable = graph_unavailable(run)
+    if unavailable is None:
+        run.graphed = GraphedSteps(run)
+    elif device.type == "cuda":
+        log.info("training step by step, not as a CUDA graph: %s", unavailable)
     return run
 
 

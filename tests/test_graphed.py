@@ -1,0 +1,129 @@
+"""Training steps of fixed sizes (what a CUDA graph replays, srf/graphed.py) against the packed step.
+
+The static-shape step must be the same function as the eager one: the same renders and gradients
+for a batch, the same training for a seed. On the CPU the static steps run eagerly; on CUDA (the
+`device` fixture) the same tests check the recorded graph.
+"""
+
+import numpy as np
+import pytest
+import torch
+
+from srfpipe.settings import TrainSettings
+from srfpipe.srf import trainer
+from srfpipe.srf.graphed import CAPACITY_QUANTUM, GraphedSteps, capacity_for, graph_unavailable
+from srfpipe.srf.model import SRFModel, build_model_config
+from srfpipe.srf.synthetic import write_scene
+
+from test_train import tiny_options
+
+
+def foggy_model(device, **options):
+    config = build_model_config(TrainSettings.from_options(dict(tiny_options(), **options)),
+                                np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]), np.eye(4), ["a", "b"], 4)
+    torch.manual_seed(0)
+    model = SRFModel(config).to(device).train()
+    with torch.no_grad():
+        for p in model.field.parameters():
+            p.add_(torch.randn_like(p) * 0.3)  # a field with structure: weights spread along the rays
+    return model
+
+
+def render_and_backward(model, rays, capacity):
+    model.use_static_shapes(capacity)
+    model.zero_grad()
+    out = model(*rays, box_accumulation=True)
+    loss = (out["rgb"].square().sum() + out["logits"].sigmoid().sum() + out["distortion"]
+            + out["box_accumulation"].sum())
+    loss.backward()
+    return out, {name: p.grad.clone() for name, p in model.named_parameters() if p.grad is not None}
+
+
+def test_static_shapes_render_and_differentiate_like_the_packed_samples(device):
+    model = foggy_model(device)
+    g = torch.Generator().manual_seed(1)
+    origins = (torch.randn(256, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, -3.0])).to(device)
+    directions = torch.nn.functional.normalize(torch.randn(256, 3, generator=g) * 0.3 + torch.tensor([0.0, 0.0, 1.0]),
+                                               dim=-1).to(device)
+    rays = (origins, directions, torch.randint(0, 4, (256,), generator=g).to(device),
+            torch.rand(256, generator=g).to(device))
+    packed, packed_grads = render_and_backward(model, rays, None)
+    static, static_grads = render_and_backward(model, rays, (10**6, 10**6))
+    assert int(static["samples"]) == packed["samples"] > 1000 and int(static["shaded"]) == packed["shaded"]
+    for key in ("rgb", "logits", "depth", "accumulation", "distortion", "box_accumulation"):
+        assert torch.allclose(static[key], packed[key], atol=2e-6), key
+    assert set(static_grads) == set(packed_grads)
+    for name, grad in packed_grads.items():
+        assert torch.allclose(static_grads[name], grad, rtol=1e-4, atol=1e-6 * max(float(grad.abs().max()), 1.0)), name
+    # room for fewer kept or significant samples than there are: the rest count as empty or go
+    # unshaded, and the counts say so
+    for capacities in ((packed["samples"] // 2, 10**6), (10**6, packed["shaded"] // 2)):
+        short, _ = render_and_backward(model, rays, capacities)
+        assert int(short["samples"]) == packed["samples"]  # the counts are before the capacity
+        assert capacities[1] > packed["shaded"] or int(short["shaded"]) == packed["shaded"]
+        assert float((short["rgb"] - packed["rgb"]).detach().abs().max()) > 0.01
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("graphed")
+    images, labels = write_scene(folder, views=10, width=32, height=24)
+    return folder, images, labels
+
+
+def train_steps(scene, device, static: bool, steps: int = 40, **options):
+    folder, images, labels = scene
+    settings = TrainSettings.from_options(tiny_options(iterations=steps, device=str(device), checkpoint_every=0,
+                                                       cuda_graph=static, **options))
+    run = trainer.start_run(images, labels, folder / f"srf-{static}.zarr", settings, 5, None)
+    if static and run.graphed is None:  # the CPU: the same static steps, run eagerly
+        assert graph_unavailable(run) == "not on CUDA"
+        run.graphed = GraphedSteps(run)
+    if not static:
+        assert run.graphed is None
+    losses = []
+    for step in range(steps):
+        terms, loss, outputs = trainer.training_step(run, step)
+        run.step = step + 1
+        losses.append(float(loss))
+    return run, losses
+
+
+def test_static_steps_train_as_the_eager_steps_do(scene, device):
+    _, eager = train_steps(scene, device, static=False)
+    run, static = train_steps(scene, device, static=True)
+    # the same batches (one seeded stream), the same function: the first steps agree to
+    # rounding, which grows through the optimizer steps (on CUDA bf16 autocast and atomic adds,
+    # which sum in no fixed order, make two eager runs drift apart too) but stays far below what
+    # a wrong step would give
+    assert run.graphed.capacity is not None and max(run.graphed.capacity) <= run.graphed.limit
+    assert np.allclose(static[:5], eager[:5], rtol=1e-3), (static[:5], eager[:5])
+    assert abs(np.mean(static[-10:]) / np.mean(eager[-10:]) - 1.0) < (2e-3 if device.type == "cpu" else 2e-2)
+    assert eager[-1] < 0.7 * eager[0]
+
+
+def test_the_shading_capacity_grows_when_a_step_outgrows_it(scene, device):
+    run, _ = train_steps(scene, device, static=True, steps=4)
+    graphed = run.graphed
+    graphed.capacity = (1, 1)  # far too small: the next steps keep and shade more than that
+    for step in range(4, 8):
+        trainer.training_step(run, step)
+    graphed.check_capacity()
+    assert all(c > 1 and (c % CAPACITY_QUANTUM == 0 or c == graphed.limit) for c in graphed.capacity)
+    assert capacity_for(10 * graphed.limit, graphed.limit) == graphed.limit  # never beyond every candidate
+
+
+def test_why_a_step_is_not_graphed_is_named(scene):
+    folder, images, labels = scene
+    settings = TrainSettings.from_options(tiny_options(device="cpu", checkpoint_every=0))
+    run = trainer.start_run(images, labels, folder / "srf-why.zarr", settings, 5, None)
+    assert run.graphed is None and graph_unavailable(run) == "not on CUDA"
+    run.device = torch.device("cuda")  # what the same run would meet on a GPU
+    assert graph_unavailable(run) is None
+    for options, reason in (({"cuda_graph": False}, "cuda_graph is false"),
+                            ({"tv_density": 0.1, "tv_samples": 100}, "tv_samples"),
+                            ({"encoding": "hash"}, "hash grid"),
+                            ({"rays_per_batch": 65536}, "rays_per_batch 65536")):
+        run.settings = TrainSettings.from_options(tiny_options(device="cpu", **options))
+        run.model.field.density_grid = options.get("encoding") != "hash"
+        assert reason in graph_unavailable(run)
