@@ -369,22 +369,25 @@ CHANGE_KEYS = ("psnr", "ssim", "psnr_object", "miou_classes", "train_view_psnr",
 DEFAULT_TOLERANCE_DB = 0.3
 
 
-def candidate_change(panel: dict, baseline_file: Path) -> dict:
-    """Each capture's candidate numbers minus captures.json's panel (the defaults)."""
-    baseline = json.loads(baseline_file.read_text()).get("panel", {}) if baseline_file.exists() else {}
-    change = {}
+def candidate_change(panel: dict, baseline_files: list[Path]) -> tuple[dict, dict]:
+    """Each capture's candidate numbers minus the defaults' panel entry from the first of
+    `baseline_files` that has the capture; and which file that was, per capture."""
+    baselines = [(path, json.loads(path.read_text()).get("panel", {})) for path in baseline_files if path.exists()]
+    change, used = {}, {}
     for name, entry in panel.items():
-        base = baseline.get(name, {})
+        path, base = next(((path, b[name]) for path, b in baselines if name in b), (None, {}))
+        used[name] = path.name if path else None
         change[name] = {key: entry[key] - base[key] for key in CHANGE_KEYS
                         if isinstance(entry.get(key), float) and isinstance(base.get(key), float)}
-    return change
+    return change, used
 
 
-def print_change(overrides: dict, change: dict) -> None:
-    print(f"candidate {overrides} against the defaults (captures.json):")
-    print(f"{'capture':14} " + " ".join(f"{k[:12]:>12}" for k in CHANGE_KEYS))
+def print_change(overrides: dict, change: dict, baselines: dict) -> None:
+    print(f"candidate {overrides} against the defaults:")
+    print(f"{'capture':14} " + " ".join(f"{k[:12]:>12}" for k in CHANGE_KEYS) + "  baseline")
     for name, delta in change.items():
-        print(f"{name:14} " + " ".join(f"{delta[k]:+12.2f}" if k in delta else f"{'-':>12}" for k in CHANGE_KEYS))
+        print(f"{name:14} " + " ".join(f"{delta[k]:+12.2f}" if k in delta else f"{'-':>12}" for k in CHANGE_KEYS)
+              + f"  {baselines.get(name)}")
     worst = min((d["psnr"] for d in change.values() if "psnr" in d), default=None)
     if worst is not None:
         print(f"worst held-out PSNR change {worst:+.2f} dB: "
@@ -406,8 +409,11 @@ def main() -> int:
                              "captures_candidate_<candidate>.json with each capture's change against captures.json's panel, "
                              "in its own work directory (captures-candidate)")
     parser.add_argument("--equal-steps", action="store_true",
-                        help="with --set: train each capture for the steps its captures.json entry reached in its "
-                             "10 minutes (time budget off), so the candidate compares with the defaults on any machine")
+                        help="train each capture for the steps its captures.json entry reached in its 10 minutes "
+                             "(time budget off), so a candidate (--set) compares with the defaults on any machine; "
+                             "alone, it measures the defaults so (captures_candidate_equal-steps.json), the baseline "
+                             "that equal-steps candidates are then compared with: the same code and schedule, so "
+                             "a difference is the candidate's, not the machine's or the code's since captures.json")
     parser.add_argument("--masks-only", action="store_true",
                         help="build the scenes up to labels.zarr (no training) and add the masks' own mIoU against "
                              "ground truth (masks_miou_classes) to captures.json")
@@ -428,9 +434,9 @@ def main() -> int:
         args.workdir = args.workdir.with_name("captures-candidate")
     scenes = scene_configs(args.scenes, args.quick, overrides)
     if args.equal_steps:
-        if not overrides:
-            parser.error("--equal-steps compares a candidate (--set) with the defaults: give --set")
         equal_steps(scenes, args.quick)
+        if args.workdir == parser.get_default("workdir"):
+            args.workdir = args.workdir.with_name("captures-candidate")
         overrides = {**overrides, "equal_steps": True}
     write_workdir(args.workdir, scenes, "occupancy")
     prepare_variants(args.workdir, scenes, tuple(args.snakemake_args))
@@ -480,9 +486,13 @@ def main() -> int:
         "thin_bounds_ratio_poses": (plant.get("bounds") or {}).get("poses_ratio_to_object"),
     })
     if overrides:
-        report["change"] = candidate_change(panel, result_path("captures", args.quick))
+        # an equal-steps candidate against the defaults at equal steps where measured, else captures.json
+        baselines = [result_path("captures", args.quick)]
+        if overrides.get("equal_steps") and set(overrides) != {"equal_steps"}:
+            baselines.insert(0, result_path("captures_candidate_equal-steps", args.quick))
+        report["change"], report["change_baseline"] = candidate_change(panel, baselines)
         write_result(previous_file, report)
-        print_change(overrides, report["change"])
+        print_change(overrides, report["change"], report["change_baseline"])
         return 0
     # every scene in the report whose renders are in the work directory, measured now or earlier
     montage(results, list(per_scene), REPO / "benchmarks" / "results" / f"captures{'_quick' if args.quick else ''}.png")
