@@ -409,6 +409,8 @@ def training_step(run: TrainingRun, step: int):
             run.watch.update(terms, loss)
             return terms, loss, outputs
         except RuntimeError as error:  # a capture CUDA refused: this run goes on step by step
+            if not run.graphed.cuda:  # nothing was recorded: a real error
+                raise
             cause = error.__cause__ or error.__context__
             log.warning("recording the training step as a CUDA graph failed (%s%s); training step by step",
                         str(error).splitlines()[0], f"; during: {str(cause).splitlines()[0]}" if cause else "")
