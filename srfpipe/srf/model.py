@@ -342,9 +342,10 @@ class SRFModel(nn.Module):
         significant = ((weights.detach() > self.color_threshold) & mask).reshape(-1)
         index = torch.nonzero_static(significant, size=shade_capacity, fill_value=end).squeeze(1)
         gather = index.clamp_max(end - 1)
-        h = field.latent(points[gather])
+        shade_points = points[gather]
+        h = field.latent(shade_points)
         rgb = field.color(h, directions, image_index, ray_index=torch.div(gather, k, rounding_mode="floor"))
-        logits = field.semantics(h, points[gather])
+        logits = field.semantics(h, shade_points)
         c = logits.shape[-1]
         rgb_pad = torch.zeros(end + 1, 3, device=rgb.device).index_copy(0, index, rgb.float())[:end].view(n, k, 3)
         sem_pad = torch.zeros(end + 1, c, device=rgb.device).index_copy(0, index, logits.float())[:end].view(n, k, c)
