@@ -48,8 +48,6 @@ def graph_unavailable(run) -> str | None:
     if s.rays_per_batch > MAX_GRAPHED_RAYS:
         return (f"train.rays_per_batch {s.rays_per_batch} is over {MAX_GRAPHED_RAYS}, where step by step measured "
                 f"faster (srfpipe.srf.graphed.MAX_GRAPHED_RAYS)")
-    if not run.model.field.density_grid:
-        return "the hash grid's density MLP is evaluated at the kept samples only"
     if run.scaler is not None:
         return "fp16 loss scaling reads its overflow flag on the host"
     if s.tv_samples is not None and (s.tv_density or s.tv_features):

@@ -216,7 +216,8 @@ class SRFModel(nn.Module):
         density is read at up to `kept` of the candidate intervals the occupancy grid keeps, the
         colour and semantic heads run at up to `shaded` significant samples, each padded to that
         size (the outputs `samples` and `shaded` count how many there were; beyond a capacity,
-        the last ones count as empty, or go unshaded). None: back to packed, data-sized steps."""
+        the last ones count as empty, or go unshaded; the hash grid shades every kept sample, so
+        `shaded` is unused there). None: back to packed, data-sized steps."""
         static = capacities is not None
         self.capacities = tuple(int(c) for c in capacities) if static else None
         self.field.static_shapes = static
@@ -336,14 +337,22 @@ class SRFModel(nn.Module):
         # the kept intervals first, padded to the capacity with an index one past the end, whose
         # row is dropped below (a scatter needs no count read back from the device)
         kept = torch.nonzero_static(mask.reshape(-1), size=kept_capacity, fill_value=end).squeeze(1)
-        sigma = field.sigma(points[kept.clamp_max(end - 1)]).float()
+        kept_points = points[kept.clamp_max(end - 1)]
+        if field.density_grid:
+            sigma = field.sigma(kept_points).float()
+        else:  # the hash grid's MLP gives sigma and h together: every kept sample is shaded
+            sigma, h = field.density(kept_points)
+            sigma = sigma.float()
         sigma = torch.zeros(end + 1, device=sigma.device).index_copy(0, kept, sigma)[:end].view(n, k)
         weights = rendering.render_weights(sigma, samples.delta)
-        significant = ((weights.detach() > self.color_threshold) & mask).reshape(-1)
-        index = torch.nonzero_static(significant, size=shade_capacity, fill_value=end).squeeze(1)
-        gather = index.clamp_max(end - 1)
-        shade_points = points[gather]
-        h = field.latent(shade_points)
+        if field.density_grid:
+            significant = ((weights.detach() > self.color_threshold) & mask).reshape(-1)
+            index = torch.nonzero_static(significant, size=shade_capacity, fill_value=end).squeeze(1)
+            gather = index.clamp_max(end - 1)
+            shade_points = points[gather]
+            h = field.latent(shade_points)
+        else:
+            significant, index, gather, shade_points = mask.reshape(-1), kept, kept.clamp_max(end - 1), kept_points
         rgb = field.color(h, directions, image_index, ray_index=torch.div(gather, k, rounding_mode="floor"))
         logits = field.semantics(h, shade_points)
         c = logits.shape[-1]
