@@ -18,6 +18,7 @@ import pytest
 from srfpipe import cameras
 from srfpipe.artifacts import meta, open_artifact
 from srfpipe.poses import import_poses
+from srfpipe.poses import sfm
 from srfpipe.poses.align import pose_errors, up_alignment
 from srfpipe.poses.video import choose_frames, extract_frames, read_frames
 
@@ -58,6 +59,8 @@ def test_photos_are_posed_by_structure_from_motion(orbit, tmp_path):
     group = open_artifact(out, stage="poses")
     info = meta(group)
     assert info["source_format"] == "images" and info["sfm"]["matcher"] == "exhaustive"
+    # small frames, few features: guided matching is affordable and on
+    assert info["sfm"]["guided_matching"] and info["sfm"]["mean_features"] <= sfm.GUIDED_MAX_FEATURES
     assert all(p.startswith("images/frame_") for p in info["image_paths"])  # the capture's images/ subfolder
     assert info["ground_truth"] is None  # the generator's frame is not SfM's
     result = _check_recovered(group, truth, float(np.max(bounds[1] - bounds[0])),
@@ -68,6 +71,18 @@ def test_photos_are_posed_by_structure_from_motion(orbit, tmp_path):
     assert np.allclose(np.array(info["up_rotation"])[:3, :3] @ np.array(info["up_rotation"])[:3, :3].T, np.eye(3))
     assert group["points_world"].shape[0] == info["sfm"]["num_points3D"]
     print(f"\nphotos: {result}, {time.perf_counter() - started:.1f} s in all")
+
+
+def test_images_with_many_features_are_matched_without_guidance_and_still_posed(orbit, tmp_path, monkeypatch):
+    # the orbit's frames standing in for large photos (the fox's 10 000 features): over the limit,
+    # matching skips the guided pass (its cost grows with the square of the features)
+    monkeypatch.setattr(sfm, "GUIDED_MAX_FEATURES", 10)
+    root, truth, bounds = orbit
+    out = import_poses({"format": "images", "path": str(root)}, None, {}, tmp_path / "poses.zarr", threads=2)
+    group = open_artifact(out, stage="poses")
+    assert meta(group)["sfm"]["guided_matching"] is False
+    _check_recovered(group, truth, float(np.max(bounds[1] - bounds[0])),
+                     [f"frame_{i:05d}" for i in range(len(truth))])
 
 
 def test_video_is_posed_through_its_chosen_frames(orbit, tmp_path):
