@@ -96,6 +96,8 @@ def _metrics_text(metrics: dict | None) -> str:
         train, heldout = metrics.get("train_view_psnr"), metrics.get("psnr")
         numbers = (f" (train {train:.1f} dB, held-out {heldout:.1f} dB)"
                    if isinstance(train, (int, float)) and isinstance(heldout, (int, float)) else "")
+        if isinstance(metrics.get("appearance_gap_db"), (int, float)):
+            numbers += f" ({metrics['appearance_gap_db']:.1f} dB of the gap: each training image's own appearance)"
         parts.append("fits the training views, not new ones" + numbers)
     return ", ".join(parts)
 

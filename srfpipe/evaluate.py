@@ -10,6 +10,9 @@ is >= 0.5, background otherwise; `miou` averages over the trained classes and ba
 A generalization check: a few training views (`evaluate.train_views`, evenly spaced) are rendered
 the same way and scored (`train_view_psnr`, no renders written); `generalization_gap_db` is that
 minus the held-out `psnr`, and a gap above GENERALIZATION_GAP_DB sets `overfit` and logs a warning.
+A field with per-image appearance embeddings renders those views once more with the appearance a
+new view at their pose borrows (`train_view_psnr_borrowed_appearance`): `appearance_gap_db`, the
+part of the gap that is each training image's own embedding rather than the geometry.
 Sparse labels: when some training frames had no masks and the capture has ground truth, a few of
 them (`evaluate.unlabelled_views`) are scored against it too (`miou_unlabelled_gt`).
 The masks' own ceiling: on a capture with ground truth, the composited labels of the labelled
@@ -208,11 +211,12 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
     unlabelled_chosen = train_view_choice(unlabelled, settings.unlabelled_views)
     supersample = default_supersample(data.width, data.height, settings.supersample)
 
-    def render_view(index):
+    def render_view(index, **options):
         """The render of view `index` and its captured image (float64 in [0, 1])."""
         # the views' own frame: a field trained on other labels of the same capture has another
         pose_world = world_from_scene_pose(data.world_from_scene, data.poses_scene[index].numpy())
-        rendered = field.render(pose_world, data.intrinsics[index].numpy(), data.width, data.height, supersample)
+        rendered = field.render(pose_world, data.intrinsics[index].numpy(), data.width, data.height, supersample,
+                                **options)
         return rendered, data.images[index].numpy().astype(np.float64) / 255.0
 
     c = len(data.classes)
@@ -270,6 +274,13 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
         result.update({"train_view_names": [data.names[i] for i in train_chosen],
                        "train_view_psnr": train_psnr, "generalization_gap_db": gap,
                        "overfit": bool(gap is not None and gap > GENERALIZATION_GAP_DB)})
+        if train_rgb and getattr(field, "has_appearance", False):
+            # the same training views with the appearance a new view at their pose gets (the nearest
+            # *other* training image's): the part of the gap that is each image's own embedding
+            # (exposure, white balance, and whatever else it absorbed), apart from the geometry's
+            borrowed = [render_view(index, exclude_view=int(index))[0]["rgb"] for index in train_chosen]
+            result["train_view_psnr_borrowed_appearance"] = pooled_psnr(borrowed, train_target)
+            result["appearance_gap_db"] = train_psnr - result["train_view_psnr_borrowed_appearance"]
         if significant:
             # fog and floaters: of the samples that carry weight (> 0.03), the share that lies
             # off the surface each ray sees (srfpipe.srf.model.FLOATER_CELLS from its median depth)
@@ -312,8 +323,10 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
              f" miou {result['miou']:.3f}" if semantic else " (no classes: no IoU)")
     if result["overfit"]:
         log.warning("%s: fits the training views, not new ones: training views %.1f dB, held-out %.1f dB "
-                    "(gap %.1f dB > %g)", srf, result["train_view_psnr"], result["psnr"],
-                    result["generalization_gap_db"], GENERALIZATION_GAP_DB)
+                    "(gap %.1f dB > %g)%s", srf, result["train_view_psnr"], result["psnr"],
+                    result["generalization_gap_db"], GENERALIZATION_GAP_DB,
+                    "" if "appearance_gap_db" not in result else
+                    f"; {result['appearance_gap_db']:.1f} dB of it is the training images' own appearance embeddings")
     return result
 
 

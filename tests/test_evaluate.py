@@ -140,11 +140,37 @@ def test_training_views_are_scored_like_the_held_out_ones_and_give_the_gap(scene
     assert saved["overfit"] is False
     assert sorted(path.name for path in (out / "renders").iterdir()) == ["frame_00000.png", "frame_00004.png"]
 
+    assert "appearance_gap_db" not in saved  # no appearance embeddings: nothing to borrow
+
     off = evaluate_field(ExactField(images, data.classes), data, folder / "eval_train_views_off",
                          {**CENTRES, "train_views": 0}, labels, "exact")
     assert off["train_view_names"] == [] and off["train_view_psnr"] is None
     assert off["generalization_gap_db"] is None and off["overfit"] is False
     assert off["psnr"] == pytest.approx(saved["psnr"])
+
+
+class ExposedField(ExactField):
+    """The exact field with a per-image exposure, as an appearance embedding learns it: each
+    training image rendered with its own is exact; with another image's, 20 % darker."""
+
+    has_appearance = True
+
+    def render(self, camera_to_world, intrinsics, width, height, supersample=1, exclude_view=None) -> dict:
+        out = super().render(camera_to_world, intrinsics, width, height, supersample)
+        if exclude_view is not None:
+            out["rgb"] = out["rgb"] * 0.8
+        return out
+
+
+def test_the_gap_that_is_the_training_images_own_appearance_is_told_apart(scene):
+    folder, images, labels = scene
+    data = load_posed_images(images, labels)
+    saved = evaluate_field(ExposedField(images, data.classes), data, folder / "eval_exposed", CENTRES, labels,
+                           "exposed")
+    assert saved["train_view_psnr"] > 45 and saved["overfit"] is False
+    assert saved["train_view_psnr_borrowed_appearance"] < 25
+    assert saved["appearance_gap_db"] == pytest.approx(saved["train_view_psnr"]
+                                                       - saved["train_view_psnr_borrowed_appearance"])
 
 
 def test_a_field_that_matches_only_the_training_views_is_flagged_and_the_summary_says_so(scene, tmp_path, caplog):

@@ -193,6 +193,13 @@ def test_novel_view_borrows_the_appearance_of_the_nearest_training_image():
     rendered = model.eval().render_rays_chunked(origins, directions)["rgb"]
     expected = model(origins, directions, torch.ones(4, dtype=torch.long))["rgb"]
     np.testing.assert_allclose(rendered.numpy(), expected.detach().numpy(), rtol=1e-6)
+    # training view 1 rendered as a new view at its own pose borrows the other one's appearance
+    assert model.field.nearest_training_view(torch.tensor([2.9, 0.1, 0.0]), torch.tensor([-1.0, 0.0, 0.0]),
+                                             exclude=1) == 2
+    borrowed = model.render_rays_chunked(origins, directions, exclude_view=1)["rgb"]
+    expected = model(origins, directions, torch.full((4,), 2, dtype=torch.long))["rgb"]
+    np.testing.assert_allclose(borrowed.numpy(), expected.detach().numpy(), rtol=1e-6)
+    assert float((borrowed - rendered).abs().max()) > 1e-3
 
 
 def test_a_model_built_without_validation_is_the_workflows_model():

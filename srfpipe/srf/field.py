@@ -265,12 +265,15 @@ class SemanticField(nn.Module):
         self.camera_centres[views] = poses[:, :3, 3]
         self.camera_axes[views] = poses[:, :3, 2]
 
-    def nearest_training_view(self, origin: torch.Tensor, axis: torch.Tensor) -> int | None:
+    def nearest_training_view(self, origin: torch.Tensor, axis: torch.Tensor, exclude: int | None = None) -> int | None:
         """The training image taken nearest to a camera at `origin` looking along `axis`
-        (distance in box sizes plus 1 - cos of the angle between the axes), or None."""
+        (distance in box sizes plus 1 - cos of the angle between the axes), or None; `exclude`:
+        an image that may not be chosen (a training view rendered as a new view would be)."""
         if self.appearance is None:
             return None
         known = torch.isfinite(self.camera_centres).all(dim=-1)
+        if exclude is not None:
+            known[int(exclude)] = False
         if not bool(known.any()):
             return None
         size = float((self.box_max - self.box_min).max())

@@ -367,14 +367,15 @@ class SRFModel(nn.Module):
         return out
 
     @torch.no_grad()
-    def render_rays_chunked(self, origins, directions, chunk: int = 8192) -> dict:
-        """Inference over many rays in chunks; returns CPU float32 tensors."""
+    def render_rays_chunked(self, origins, directions, chunk: int = 8192, exclude_view: int | None = None) -> dict:
+        """Inference over many rays in chunks; returns CPU float32 tensors. `exclude_view`: a
+        training image whose appearance embedding the rays may not borrow."""
         outputs: dict[str, list] = {"rgb": [], "logits": [], "depth": [], "accumulation": [],
                                     "significant": [], "floaters": [], "candidate_samples": [],
                                     "kept_samples": []}
         # a novel view (one camera: the rays share an origin) takes the appearance embedding of
         # the nearest training image; on the fox that beat the mean embedding by 0.55 dB
-        nearest = self.field.nearest_training_view(origins.mean(dim=0), directions.mean(dim=0))
+        nearest = self.field.nearest_training_view(origins.mean(dim=0), directions.mean(dim=0), exclude_view)
         for start in range(0, origins.shape[0], chunk):
             index = None
             if nearest is not None:
