@@ -334,6 +334,10 @@ class TrainSettings(SettingsSection):
     appearance_dim: int | None = None
     """per-image appearance embedding size (0 = off; null = 8 for real captures, whose exposure and
     white balance vary from image to image, 0 for generated ones with ground truth)"""
+    appearance_model: str = 'latent'
+    """how the per-image appearance acts: latent (an input of the colour MLP, as NeRF-W and
+    Nerfacto) or affine (a colour matrix and offset applied to each image's rendered pixels:
+    exposure and white balance, and nothing a single view shows)"""
     distortion: float = 0.0
     """weight of mip-NeRF 360's distortion loss, which pulls each ray's weight into one short
     interval (against fog and floaters)"""

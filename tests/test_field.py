@@ -202,6 +202,26 @@ def test_novel_view_borrows_the_appearance_of_the_nearest_training_image():
     assert float((borrowed - rendered).abs().max()) > 1e-3
 
 
+def test_the_affine_appearance_transforms_each_images_colours_and_nothing_else():
+    options = dict(section_defaults("train"), default_cells=8, outer_resolution=4, hidden=8, appearance_dim=4,
+                   appearance_model="affine")
+    config = build_model_config(options, [[-1, -1, -1], [1, 1, 1]], np.eye(4), [], num_images=3)
+    model = SRFModel(config).eval()
+    # the colour MLP sees no appearance: the transform is the images' only difference
+    assert model.field.color_mlp[0].in_features == model.field.geo_features + model.field.sh_degree ** 2
+    origins = torch.tensor([[0.0, 0.0, -3.0]]).repeat(4, 1)
+    directions = torch.nn.functional.normalize(torch.randn(4, 3, generator=torch.Generator().manual_seed(0))
+                                               * 0.2 + torch.tensor([0.0, 0.0, 1.0]), dim=-1)
+    with torch.no_grad():
+        plain = model(origins, directions, torch.zeros(4, dtype=torch.long))["rgb"]  # zero-initialised: identity
+        model.field.appearance.weight[1, [0, 4, 8]] = 0.5  # image 1 half again as bright
+        model.field.appearance.weight[1, 11] = -0.1  # and less blue
+        bright = model(origins, directions, torch.ones(4, dtype=torch.long))["rgb"]
+        unchanged = model(origins, directions, torch.zeros(4, dtype=torch.long))["rgb"]
+    assert torch.allclose(unchanged, plain)
+    assert torch.allclose(bright, plain * 1.5 + torch.tensor([0.0, 0.0, -0.1]), atol=1e-6)
+
+
 def test_a_model_built_without_validation_is_the_workflows_model():
     """build_model_config fills missing train keys from the schema: the same config as from the
     validated defaults (the code's old literal fallbacks said 48 / 16 / 2 where the schema says

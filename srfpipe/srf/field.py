@@ -45,6 +45,9 @@ class _TruncExp(torch.autograd.Function):
         return grad * torch.exp(x.clamp(-15.0, 15.0))
 
 
+AFFINE_APPEARANCE_DIM = 12  # a 3 x 3 colour matrix and an offset per image
+
+
 def trunc_exp(x: torch.Tensor) -> torch.Tensor:
     return _TruncExp.apply(x.float())
 
@@ -150,9 +153,17 @@ class SemanticField(nn.Module):
         self.geo_features = geo
         self.sh_degree = int(c["sh_degree"])
         appearance_dim = int(c["appearance_dim"])
+        # "latent": a_i is an input of F_c (NeRF-W, Nerfacto); "affine": a_i is a colour transform
+        # of each image's rendered pixels (rgb + M_i rgb + b_i, 12 numbers), which can correct
+        # exposure and white balance but not learn what a single view shows
+        self.appearance_model = str(c.get("appearance_model", "latent"))
+        if self.appearance_model not in ("latent", "affine"):
+            raise ValueError(f"appearance_model must be latent or affine, got {self.appearance_model!r}")
         self.appearance = (
-            nn.Embedding(int(c["num_images"]), appearance_dim) if appearance_dim > 0 else None
+            nn.Embedding(int(c["num_images"]), AFFINE_APPEARANCE_DIM if self.appearance_model == "affine"
+                         else appearance_dim) if appearance_dim > 0 else None
         )
+        colour_appearance_dim = appearance_dim if self.appearance_model == "latent" else 0
         if self.appearance is not None:
             nn.init.zeros_(self.appearance.weight)
             # where each training image was taken (scene frame): a novel view borrows the
@@ -160,7 +171,7 @@ class SemanticField(nn.Module):
             num_images = int(c["num_images"])
             self.register_buffer("camera_centres", torch.full((num_images, 3), float("nan")))
             self.register_buffer("camera_axes", torch.full((num_images, 3), float("nan")))
-        self.color_mlp = mlp(geo + self.sh_degree**2 + appearance_dim, hidden, 3,
+        self.color_mlp = mlp(geo + self.sh_degree**2 + colour_appearance_dim, hidden, 3,
                              layers=int(c["color_layers"]))
         self.num_classes = int(c["num_classes"])
         # F_s reads h.detach() and, optionally, a frequency encoding of the (contracted) position:
@@ -243,18 +254,29 @@ class SemanticField(nn.Module):
         first, rest = self.color_mlp[0], self.color_mlp[1:]
         geo = h.shape[1]
         per_ray = [spherical_harmonics(directions, self.sh_degree)]
-        if self.appearance is not None:
-            if image_index is None:  # no view known: the mean appearance of the training images
-                emb = self.appearance.weight.mean(dim=0, keepdim=True).expand(directions.shape[0], -1)
-            else:
-                emb = self.appearance(image_index)
-            per_ray.append(emb)
+        if self.appearance is not None and self.appearance_model == "latent":
+            per_ray.append(self.appearance_code(image_index, directions.shape[0]))
         ray_term = torch.cat(per_ray, dim=-1) @ first.weight[:, geo:].T + first.bias
         if ray_index is not None:
             # index_select: its backward is an index_add_, ~15x faster on the CPU than the
             # accumulating index_put_ behind ray_term[ray_index]
             ray_term = ray_term.index_select(0, ray_index)
         return torch.sigmoid(rest(h @ first.weight[:, :geo].T + ray_term))
+
+    def appearance_code(self, image_index: torch.Tensor | None, rays: int) -> torch.Tensor:
+        """a_i (R, dim) of each ray's image; with no image known, the mean of the training images'."""
+        if image_index is None:
+            return self.appearance.weight.mean(dim=0, keepdim=True).expand(rays, -1)
+        return self.appearance(image_index)
+
+    def image_colour(self, rgb: torch.Tensor, image_index: torch.Tensor | None) -> torch.Tensor:
+        """The rendered colours (R, 3) of rays as their image saw them: rgb + M_i rgb + b_i with the
+        affine appearance (zero-initialised: the identity), unchanged otherwise."""
+        if self.appearance is None or self.appearance_model != "affine":
+            return rgb
+        code = self.appearance_code(image_index, rgb.shape[0]).float()
+        matrix = code[:, :9].reshape(-1, 3, 3)
+        return rgb + torch.einsum("rij,rj->ri", matrix, rgb) + code[:, 9:]
 
     def record_training_cameras(self, camera_to_scene: torch.Tensor, views) -> None:
         """Remember the centres and viewing axes (OpenCV +z) of the training `views`."""

@@ -175,6 +175,7 @@ def build_model_config(options, bounds_world, scene_from_world, classes: list[st
         "hidden": int(s.hidden), "geo_features": int(s.geo_features),
         "sh_degree": int(s.sh_degree), "num_classes": len(classes),
         "appearance_dim": int(s.appearance_dim or 0), "num_images": int(num_images),
+        "appearance_model": s.appearance_model,
         "density_bias": density_bias, "density_grid": density_grid,
         "color_layers": int(s.color_layers),
         "semantic_octaves": int(s.semantic_octaves),
@@ -272,7 +273,7 @@ class SRFModel(nn.Module):
         c = logits.shape[-1]
         rgb_pad = torch.zeros(n, k, 3, device=rgb.device).masked_scatter(colour_mask.unsqueeze(-1), rgb.float())
         sem_pad = torch.zeros(n, k, c, device=logits.device).masked_scatter(colour_mask.unsqueeze(-1), logits.float())
-        out = self._composite(directions, samples, weights, rgb_pad, sem_pad)
+        out = self._composite(directions, samples, weights, rgb_pad, sem_pad, image_index)
         out["samples"] = int(rays.numel())
         out["shaded"] = int(shade_rays.numel())
         if self.training and box_accumulation:
@@ -292,15 +293,15 @@ class SRFModel(nn.Module):
             out["kept_samples"] = mask.sum(dim=-1).float()
         return out
 
-    def _composite(self, directions, samples: RaySamples, weights, rgb_pad, sem_pad) -> dict:
+    def _composite(self, directions, samples: RaySamples, weights, rgb_pad, sem_pad, image_index) -> dict:
         """Eq. 1 and Eq. 3 over the padded samples: rgb, logits, depth, accumulation (and in
         training the distortion loss)."""
         field = self.field
         n, c = weights.shape[0], sem_pad.shape[-1]
         acc = rendering.accumulation(weights)
-        color = rendering.composite_background(
+        color = field.image_colour(rendering.composite_background(
             rendering.accumulate(weights, rgb_pad), acc, field.background(directions)
-        )
+        ), image_index)
         # Eq. 3 with detached weights: the semantic loss reaches only F_s (and background logits)
         sem_weights = weights.detach()
         sem_logits = rendering.composite_background(
@@ -358,7 +359,7 @@ class SRFModel(nn.Module):
         c = logits.shape[-1]
         rgb_pad = torch.zeros(end + 1, 3, device=rgb.device).index_copy(0, index, rgb.float())[:end].view(n, k, 3)
         sem_pad = torch.zeros(end + 1, c, device=rgb.device).index_copy(0, index, logits.float())[:end].view(n, k, c)
-        out = self._composite(directions, samples, weights, rgb_pad, sem_pad)
+        out = self._composite(directions, samples, weights, rgb_pad, sem_pad, image_index)
         out["samples"] = mask.sum()
         out["shaded"] = significant.sum()
         if box_accumulation:

@@ -185,7 +185,8 @@ class SemanticRadianceField:
             for start in range(0, points.shape[0], self.batch_size):
                 x = self._to_scene(points[start:start + self.batch_size])
                 h = self.model.field.latent(x)
-                out[start:start + len(x)] = self.model.field.color(h, directions[start:start + len(x)]).float().cpu().numpy()
+                colour = self.model.field.image_colour(self.model.field.color(h, directions[start:start + len(x)]), None)
+                out[start:start + len(x)] = colour.float().cpu().numpy()
         return out
 
     def background(self, directions_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
