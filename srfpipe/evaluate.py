@@ -211,12 +211,12 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
     unlabelled_chosen = train_view_choice(unlabelled, settings.unlabelled_views)
     supersample = default_supersample(data.width, data.height, settings.supersample)
 
-    def render_view(index, **options):
+    def render_view(index, **render_options):
         """The render of view `index` and its captured image (float64 in [0, 1])."""
         # the views' own frame: a field trained on other labels of the same capture has another
         pose_world = world_from_scene_pose(data.world_from_scene, data.poses_scene[index].numpy())
         rendered = field.render(pose_world, data.intrinsics[index].numpy(), data.width, data.height, supersample,
-                                **options)
+                                **render_options)
         return rendered, data.images[index].numpy().astype(np.float64) / 255.0
 
     c = len(data.classes)

@@ -61,8 +61,9 @@ RELAX_BELOW = 0.9  # fewer images registered than this fraction: mapping again w
 # Guided matching (after RANSAC, match again along each pair's epipolar geometry) costs about the
 # square of the features per image. Measured on 2 cores: the orchard video's 640 x 480 frames (2800
 # features) 0.12 s a pair with it; the fox's 1080 x 1920 photos (10 100 features) 2.7 s a pair
-# with it, 0.28 s without, 1500 inliers a pair even then (55 minutes against 6 for its 1225
-# pairs). Images with more features than this on average are matched without it.
+# with it, 0.28 s without, 1500 inliers a pair even then (its 1225 pairs: 6 minutes measured
+# without it, about 55 at the rate with it). Images with more features than this on average are
+# matched without it.
 GUIDED_MAX_FEATURES = 4096
 MIN_PAIR_INLIERS = 15  # a pair 'verified' in the stats: this many matches fit its two-view geometry
 SFM_MATCHERS = ("auto", "exhaustive", "sequential", "retrieval")
@@ -198,14 +199,13 @@ def _descriptors(database_path: Path, names: list[str]) -> list[np.ndarray]:
                 for name in names]
 
 
-def _match(database_path: Path, matcher: str, names: list[str], threads: int) -> dict:
-    """Run the matcher; returns what it matched ({'loop_pairs': ...} for a video)."""
+def _match(database_path: Path, matcher: str, names: list[str], threads: int, features: float) -> dict:
+    """Run the matcher on images with `features` SIFT features on average; returns what it matched
+    ({'loop_pairs': ...} for a video)."""
     import pycolmap
 
     options = pycolmap.FeatureMatchingOptions()
     options.num_threads = threads
-    with pycolmap.Database.open(str(database_path)) as db:
-        features = float(np.mean([db.num_keypoints_for_image(image.image_id) for image in db.read_all_images()]))
     # more inliers on foliage's few features (see GUIDED_MAX_FEATURES), affordable only with few
     options.guided_matching = features <= GUIDED_MAX_FEATURES
     log.info("SfM: %.0f features per image: %s", features,
@@ -323,12 +323,12 @@ def run_sfm(root: Path, image_paths: list[str], *, video: bool = False, matcher:
                                   camera_mode=pycolmap.CameraMode.SINGLE if shared else pycolmap.CameraMode.AUTO,
                                   reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
         with pycolmap.Database.open(str(database)) as db:
-            featureless = [image.name for image in db.read_all_images()
-                           if db.num_keypoints_for_image(image.image_id) == 0]
+            keypoints = {image.name: db.num_keypoints_for_image(image.image_id) for image in db.read_all_images()}
+        featureless = [name for name, count in keypoints.items() if count == 0]
         if len(featureless) == n:
             raise ValueError(f"{root}: structure from motion found no SIFT features in any of the {n} images")
         log.info("SfM: %s matching", matcher)
-        matched = _match(database, matcher, links, threads)
+        matched = _match(database, matcher, links, threads, float(np.mean(list(keypoints.values()))))
         with pycolmap.Database.open(str(database)) as db:
             _, inliers = db.read_two_view_geometry_num_inliers()
             pairs = {"pairs_matched": int(db.num_matched_image_pairs()),

@@ -338,7 +338,8 @@ class SRFModel(nn.Module):
         # the kept intervals first, padded to the capacity with an index one past the end, whose
         # row is dropped below (a scatter needs no count read back from the device)
         kept = torch.nonzero_static(mask.reshape(-1), size=kept_capacity, fill_value=end).squeeze(1)
-        kept_points = points[kept.clamp_max(end - 1)]
+        kept_rows = kept.clamp_max(end - 1)
+        kept_points = points[kept_rows]
         if field.density_grid:
             sigma = field.sigma(kept_points).float()
         else:  # the hash grid's MLP gives sigma and h together: every kept sample is shaded
@@ -353,7 +354,7 @@ class SRFModel(nn.Module):
             shade_points = points[gather]
             h = field.latent(shade_points)
         else:
-            significant, index, gather, shade_points = mask.reshape(-1), kept, kept.clamp_max(end - 1), kept_points
+            significant, index, gather, shade_points = mask.reshape(-1), kept, kept_rows, kept_points
         rgb = field.color(h, directions, image_index, ray_index=torch.div(gather, k, rounding_mode="floor"))
         logits = field.semantics(h, shade_points)
         c = logits.shape[-1]
