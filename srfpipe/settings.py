@@ -131,6 +131,8 @@ class PosesSettings(SettingsSection):
     """structure from motion only, the COLMAP camera model fitted (absent: SIMPLE_RADIAL, one focal
     length and k1; RADIAL adds k2; OPENCV has fx, fy, k1, k2, p1, p2), written as the project's
     OpenCV intrinsics and distortion"""
+    principal_point: str = 'auto'
+    """structure from motion only"""
     up: str | None = field(default=None, metadata={"unset": True})
     """auto = turn the world about its origin so that the cameras' mean up vector (-y of each OpenCV
     camera) is +z, before the bounds are found (for structure from motion, whose world is

@@ -63,6 +63,10 @@ def test_photos_are_posed_by_structure_from_motion(orbit, tmp_path):
     assert info["sfm"]["guided_matching"] and info["sfm"]["mean_features"] <= sfm.GUIDED_MAX_FEATURES
     assert all(p.startswith("images/frame_") for p in info["image_paths"])  # the capture's images/ subfolder
     assert info["ground_truth"] is None  # the generator's frame is not SfM's
+    principal_point = info["sfm"]["principal_point"]
+    # this small turn barely constrains its principal point (2-3 deg): the centre is kept
+    assert principal_point["mode"] == "auto" and not principal_point["refined"]
+    assert principal_point["cameras"]["1"]["sigma_deg"] > sfm.PRINCIPAL_POINT_MAX_SIGMA_DEG
     result = _check_recovered(group, truth, float(np.max(bounds[1] - bounds[0])),
                               [f"frame_{i:05d}" for i in range(len(truth))])
     # up: auto turned the world so that the cameras' mean up (-y) is +z
@@ -198,6 +202,71 @@ def test_empty_folder_and_pose_matchers_are_refused(tmp_path):
         import_poses({"format": "images", "path": str(photos)}, None, {"matcher": "poses"}, tmp_path / "p.zarr")
     with pytest.raises(FileNotFoundError, match="neither a video file nor a frames folder"):
         import_poses({"format": "video", "path": str(photos)}, None, {}, tmp_path / "p.zarr")
+
+
+def _observed_model(elevations_deg, pp_shift, views_per_ring=12, n_points=800, noise_px=0.5, seed=0):
+    """A reconstruction as incremental mapping leaves it: cameras on rings at `elevations_deg`
+    round a cloud of points, each point observed where a camera whose principal point lies
+    `pp_shift` px off centre sees it (plus noise), the model's camera still centred."""
+    import pycolmap
+
+    rng = np.random.default_rng(seed)
+    width, height, focal = 640, 480, 500.0
+    principal_point = np.array([width / 2 + pp_shift[0], height / 2 + pp_shift[1]])
+    points = rng.uniform(-1.0, 1.0, (n_points, 3))
+    model = pycolmap.Reconstruction()
+    model.add_camera_with_trivial_rig(pycolmap.Camera(model="SIMPLE_RADIAL", width=width, height=height,
+                                                      params=[focal, width / 2, height / 2, 0.0], camera_id=1))
+    tracks = [pycolmap.Track() for _ in range(n_points)]
+    poses = []
+    for elevation in np.radians(elevations_deg):
+        for azimuth in np.linspace(0, 2 * np.pi, views_per_ring, endpoint=False):
+            centre = 5.0 * np.array([np.cos(azimuth) * np.cos(elevation), np.sin(azimuth) * np.cos(elevation),
+                                     np.sin(elevation)])
+            camera_to_world = cameras.look_at(centre, np.zeros(3))
+            world_to_camera = np.linalg.inv(camera_to_world)
+            in_camera = points @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
+            pixels = focal * in_camera[:, :2] / in_camera[:, 2:] + principal_point
+            pixels += rng.normal(0.0, noise_px, pixels.shape)
+            seen = np.flatnonzero(np.all((pixels > 0) & (pixels < [width, height]), axis=1))
+            image_id = len(poses) + 1
+            image = pycolmap.Image(name=f"{image_id:03d}.png", camera_id=1, image_id=image_id,
+                                   points2D=[pycolmap.Point2D(pixels[i]) for i in seen])
+            model.add_image_with_trivial_frame(image, pycolmap.Rigid3d(world_to_camera[:3]))
+            for k, i in enumerate(seen):
+                tracks[i].add_element(image_id, k)
+            poses.append(camera_to_world)
+    for point, track in zip(points, tracks):
+        model.add_point3D(point, track)
+    return model
+
+
+def _principal_point(model) -> np.ndarray:
+    camera = model.cameras[1]
+    return np.array([camera.principal_point_x - camera.width / 2, camera.principal_point_y - camera.height / 2])
+
+
+def test_principal_point_is_refined_only_where_the_views_show_it_off_centre():
+    # two rings of views determine the principal point: a camera 12, -8 px off centre is found
+    model, record = sfm.refine_principal_point(_observed_model([0, 35], (12, -8)), "auto")
+    assert record["refined"] and record["cameras"]["1"]["significance"] > sfm.PRINCIPAL_POINT_MIN_SIGNIFICANCE
+    np.testing.assert_allclose(_principal_point(model), [12, -8], atol=1.0)
+    # a centred camera: the shift found is noise, and the centre is kept exactly
+    for rings in ([0, 35], [0]):
+        model, record = sfm.refine_principal_point(_observed_model(rings, (0, 0)), "auto")
+        assert not record["refined"] and record["cameras"]["1"]["significance"] < sfm.PRINCIPAL_POINT_MIN_SIGNIFICANCE
+        np.testing.assert_array_equal(_principal_point(model), [0, 0])
+    # one level ring barely constrains it vertically: its uncertainty there is many pixels, and a
+    # shift that looks significant is not taken
+    assert record["cameras"]["1"]["sigma_px"] > 5.0
+    model, record = sfm.refine_principal_point(_observed_model([0], (12, -8)), "auto")
+    assert record["cameras"]["1"]["significance"] > sfm.PRINCIPAL_POINT_MIN_SIGNIFICANCE
+    assert not record["refined"] and np.all(_principal_point(model) == 0)
+    # the setting overrides the test both ways
+    model, record = sfm.refine_principal_point(_observed_model([0, 35], (12, -8)), "centre")
+    assert not record["refined"] and np.all(_principal_point(model) == 0)
+    model, record = sfm.refine_principal_point(_observed_model([0], (0, 0)), "refine")
+    assert record["refined"] and np.any(_principal_point(model) != 0)
 
 
 def test_up_alignment_turns_the_mean_up_to_z():
