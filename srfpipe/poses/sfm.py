@@ -380,7 +380,7 @@ def refine_principal_point(model, mode: str = "auto"):
     found = {c: np.array([trial.cameras[c].principal_point_x - trial.cameras[c].width / 2,
                           trial.cameras[c].principal_point_y - trial.cameras[c].height / 2]) for c in trial.cameras}
     applied = found if mode == "refine" else {c: determined_shift(uncertainty[c]) for c in trial.cameras}
-    if all(np.array_equal(applied[c], found[c]) for c in found):
+    if all(np.allclose(applied[c], found[c], rtol=0.0, atol=1e-6) for c in found):  # the whole shift
         result = trial
     elif not any(np.any(applied[c]) for c in applied):
         result = model
