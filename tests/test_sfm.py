@@ -221,7 +221,7 @@ def _observed_model(elevations_deg, pp_shift, views_per_ring=12, n_points=800, n
     model.add_camera_with_trivial_rig(pycolmap.Camera(model="SIMPLE_RADIAL", width=width, height=height,
                                                       params=[focal, width / 2, height / 2, 0.0], camera_id=1))
     tracks = [pycolmap.Track() for _ in range(n_points)]
-    poses = []
+    image_id = 0
     for elevation in np.radians(elevations_deg):
         for azimuth in np.linspace(0, 2 * np.pi, views_per_ring, endpoint=False):
             centre = 5.0 * np.array([np.cos(azimuth) * np.cos(elevation), np.sin(azimuth) * np.cos(elevation),
@@ -232,13 +232,12 @@ def _observed_model(elevations_deg, pp_shift, views_per_ring=12, n_points=800, n
             pixels = focal * in_camera[:, :2] / in_camera[:, 2:] + principal_point
             pixels += rng.normal(0.0, noise_px, pixels.shape)
             seen = np.flatnonzero(np.all((pixels > 0) & (pixels < [width, height]), axis=1))
-            image_id = len(poses) + 1
+            image_id += 1
             image = pycolmap.Image(name=f"{image_id:03d}.png", camera_id=1, image_id=image_id,
                                    points2D=[pycolmap.Point2D(pixels[i]) for i in seen])
             model.add_image_with_trivial_frame(image, pycolmap.Rigid3d(world_to_camera[:3]))
             for k, i in enumerate(seen):
                 tracks[i].add_element(image_id, k)
-            poses.append(camera_to_world)
     for point, track in zip(points, tracks):
         model.add_point3D(point, track)
     return model

@@ -22,8 +22,8 @@ are then extracted next to poses.zarr).
    (`unregistered_images`); fewer registered than `poses.min_images` is an error naming the
    folder.
 4. The principal point, fixed at the image centre while mapping, is freed in one global bundle
-   adjustment and kept when that determines it (`poses.principal_point: auto`,
-   `refine_principal_point`).
+   adjustment and moved along the directions that adjustment determines (`poses.principal_point:
+   auto`, `refine_principal_point`).
 
 The world frame and scale are COLMAP's (arbitrary); `poses.up: auto` turns the world so the
 cameras' mean up vector is +z (`srfpipe.poses.stage`). `Capture.extra["sfm"]` records the
@@ -317,6 +317,11 @@ def _final_adjustment(model, refine_principal_point: bool):
     return adjuster, summary
 
 
+def _principal_point_shift(camera) -> np.ndarray:
+    """The camera's principal point minus the image centre, in pixels."""
+    return np.array([camera.principal_point_x - camera.width / 2, camera.principal_point_y - camera.height / 2])
+
+
 def principal_point_uncertainty(model, adjuster, summary) -> dict[int, dict]:
     """Per camera: the principal point's shift from the image centre, and along each principal
     direction of its covariance (the bundle adjustment's: the inverse of its Gauss-Newton Hessian,
@@ -336,7 +341,7 @@ def principal_point_uncertainty(model, adjuster, summary) -> dict[int, dict]:
             continue
         pp = list(camera.principal_point_idxs())
         values, vectors = np.linalg.eigh(variance * np.asarray(block)[np.ix_(pp, pp)])
-        shift = np.array([camera.principal_point_x - camera.width / 2, camera.principal_point_y - camera.height / 2])
+        shift = _principal_point_shift(camera)
         directions = []
         for value, vector in zip(values, vectors.T):
             sigma = float(np.sqrt(max(value, 1e-24)))
@@ -377,8 +382,7 @@ def refine_principal_point(model, mode: str = "auto"):
     adjuster, summary = _final_adjustment(trial, refine_principal_point=True)
     uncertainty = principal_point_uncertainty(trial, adjuster, summary)
     trial.update_point_3d_errors()
-    found = {c: np.array([trial.cameras[c].principal_point_x - trial.cameras[c].width / 2,
-                          trial.cameras[c].principal_point_y - trial.cameras[c].height / 2]) for c in trial.cameras}
+    found = {c: _principal_point_shift(camera) for c, camera in trial.cameras.items()}
     applied = found if mode == "refine" else {c: determined_shift(uncertainty[c]) for c in trial.cameras}
     if all(np.allclose(applied[c], found[c], rtol=0.0, atol=1e-6) for c in found):  # the whole shift
         result = trial
