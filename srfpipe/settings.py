@@ -128,9 +128,9 @@ class PosesSettings(SettingsSection):
     min_images: int = 2
     """frames whose image file is missing are skipped with a warning (and listed in poses.zarr)"""
     camera_model: str | None = field(default=None, metadata={"unset": True})
-    """structure from motion only, the COLMAP camera model fitted (absent: SIMPLE_RADIAL, one focal
-    length and k1; RADIAL adds k2; OPENCV has fx, fy, k1, k2, p1, p2), written as the project's
-    OpenCV intrinsics and distortion"""
+    """structure from motion only, the COLMAP camera model fitted (absent: RADIAL, one focal length,
+    k1 and k2; SIMPLE_RADIAL has k1 only; OPENCV has fx, fy, k1, k2, p1, p2), written as the
+    project's OpenCV intrinsics and distortion"""
     principal_point: str = 'auto'
     """structure from motion only"""
     up: str | None = field(default=None, metadata={"unset": True})
@@ -145,6 +145,9 @@ class PosesSettings(SettingsSection):
     """seed of the perturbations (perturb_rot_deg, perturb_trans_frac)"""
     bounds: tuple | None = None
     """[[xmin, ymin, zmin], [xmax, ymax, zmax]] in world units"""
+    points_box: str = 'near_cameras'
+    """the box estimated from sparse points (when bounds are null and the capture has no ground
+    truth): all = their 1-99 % percentiles plus 5 %"""
 
 
 @dataclass(frozen=True)

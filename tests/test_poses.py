@@ -265,6 +265,25 @@ def test_bounds_from_points_ignores_outliers():
     assert np.all(bounds[0] < -0.9) and np.all(bounds[1] > 0.9)
 
 
+def test_points_near_cameras_leave_the_background_to_the_shell():
+    from srfpipe.poses.bounds import near_cameras
+
+    rng = np.random.default_rng(0)
+    # a ring 3.5 from a tree, 1.5 up, looking at it; points on the tree and on the ground 15 round it
+    poses = ring(24, radius=3.5, height=1.5, target=(0.0, 0.0, 1.2))
+    tree = rng.uniform([-1, -1, 0], [1, 1, 2.5], size=(3000, 3))
+    ground = np.column_stack([rng.uniform(-15, 15, size=(3000, 2)), np.zeros(3000)])
+    box = bounds_from_points(np.concatenate([tree, ground]))
+    assert np.all(box[1, :2] - box[0, :2] > 25)
+    clipped = near_cameras(box, poses)
+    # within the cameras' distance of what they look at: the tree and the ground under the ring
+    assert np.all(clipped[1, :2] - clipped[0, :2] < 8) and np.all(clipped[1, :2] - clipped[0, :2] > 6)
+    assert np.all(clipped[0] <= tree.min(0)) and np.all(clipped[1] >= tree.max(0))
+    # forward-facing cameras (all on one side of what they see): the points' box as it is
+    forward = np.stack([cameras.look_at([x, -5.0, 1.0], [x, 0.0, 1.0]) for x in np.linspace(-0.5, 0.5, 8)])
+    np.testing.assert_array_equal(near_cameras(box, forward), box)
+
+
 def test_bounds_from_frusta_ring_gives_box_around_target():
     poses = ring(16, radius=3.5, height=1.5, target=(0.5, -0.3, 1.2))
     intrinsics = np.tile([200.0, 200.0, 160.0, 120.0], (16, 1))  # ~77 deg horizontal field of view

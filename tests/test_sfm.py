@@ -63,6 +63,10 @@ def test_photos_are_posed_by_structure_from_motion(orbit, tmp_path):
     assert info["sfm"]["guided_matching"] and info["sfm"]["mean_features"] <= sfm.GUIDED_MAX_FEATURES
     assert all(p.startswith("images/frame_") for p in info["image_paths"])  # the capture's images/ subfolder
     assert info["ground_truth"] is None  # the generator's frame is not SfM's
+    # the default camera has k1 and k2 (a phone's lens needs both); this pinhole's are near zero
+    camera_fit = info["sfm"]["cameras"][0]
+    assert info["sfm"]["camera_model"] == "RADIAL" and camera_fit["model"] == "RADIAL"
+    assert np.all(np.abs(camera_fit["params"][3:]) < 0.05), camera_fit
     principal_point = info["sfm"]["principal_point"]
     # this small turn barely constrains its principal point vertically (2-3 deg): the slide found
     # there (tens of pixels; the camera is centred) is not applied

@@ -127,7 +127,7 @@ def import_poses(source: dict, capture_dir: str | Path | None, options: dict, ou
 
     poses = capture.camera_to_world
     points = capture.points_world
-    bounds, bounds_source = resolve_bounds(capture, poses, points, options["bounds"])
+    bounds, bounds_source = resolve_bounds(capture, poses, points, options["bounds"], options["points_box"])
     scene_size = float(np.max(bounds[1] - bounds[0]))
     perturbed = options["perturb_rot_deg"] > 0 or options["perturb_trans_frac"] > 0
     if perturbed:
@@ -142,7 +142,7 @@ def import_poses(source: dict, capture_dir: str | Path | None, options: dict, ou
                               workdir_parent=Path(out).parent, threads=threads)
         poses, points, refinement = result.camera_to_world, result.points_world, result.stats
         if bounds_source in ("points", "frusta"):
-            bounds, bounds_source = resolve_bounds(capture, poses, points, None)
+            bounds, bounds_source = resolve_bounds(capture, poses, points, None, options["points_box"])
 
     check_scene_bounds(bounds, capture.source_file, bounds_source)
     blind_cameras = check_cameras_see_bounds(poses, capture.intrinsics, capture.image_size, bounds, capture.names,
