@@ -145,7 +145,7 @@ class PosesSettings(SettingsSection):
     """seed of the perturbations (perturb_rot_deg, perturb_trans_frac)"""
     bounds: tuple | None = None
     """[[xmin, ymin, zmin], [xmax, ymax, zmax]] in world units"""
-    points_box: str = 'near_cameras'
+    points_box: str = 'all'
     """the box estimated from sparse points (when bounds are null and the capture has no ground
     truth): all = their 1-99 % percentiles plus 5 %"""
 
