@@ -8,7 +8,8 @@ are then extracted next to poses.zarr).
 1. SIFT features for every image into a scratch database (one shared camera for a video's
    frames, and for photos of one size; else one per size and EXIF focal length, COLMAP's `AUTO`). The camera
    model is `poses.camera_model` (RADIAL when absent: one focal length, the principal point, k1,
-   k2; a phone's lens needs k2: the fox's k1 0.058, k2 -0.081), mapped to the project's OpenCV (fx, fy, cx, cy) and (k1, k2, p1, p2).
+   k2; a phone's lens needs k2: the fox's k1 0.058, k2 -0.081), mapped to the project's OpenCV
+   (fx, fy, cx, cy) and (k1, k2, p1, p2).
 2. Matching suited to the source (`poses.matcher: auto`): a video's frames with their
    `SEQUENTIAL_OVERLAP` successors (and quadratic ones), and, for loop closure, with the frames
    that look most alike further along (`retrieval_pairs`); photos exhaustively below
