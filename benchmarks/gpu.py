@@ -240,7 +240,10 @@ def main() -> int:
         return 0
     reference = previous.get("cuda_vs_cpu", {}).get("cpu_reference")
     if previous.get("device") != device_name():
-        previous = {}  # another device's numbers are not merged
+        # another device's speeds and curves are not merged; its correctness check is kept, named by its device
+        earlier_check = previous.get("cuda_vs_cpu")
+        previous = {"cuda_vs_cpu": {**earlier_check, "measured_on": earlier_check.get("measured_on", previous.get("device"))}} \
+            if earlier_check else {}
     report: dict = {"device": device_name(), "budgets_seconds": list(budgets), "scenes": {}}
     if args.agreement_steps and "orchard" in names and device_name() != "cpu":
         report["cuda_vs_cpu"] = agreement(args.workdir, args.agreement_steps, "cuda")
@@ -271,7 +274,6 @@ def main() -> int:
         for rays, value in earlier.get("throughput", {}).items():
             entry["throughput"].setdefault(rays, dict(value, measured_in_an_earlier_run=True))
         report["scenes"][name] = entry
-    report["budgets_seconds"] = sorted({p["budget_seconds"] for s in report["scenes"].values() for p in s["curve"]})
 
     report["rays_per_s_best"] = max((t["rays_per_s"] for s in report["scenes"].values() for t in s["throughput"].values()),
                                     default=None)
@@ -295,6 +297,7 @@ def main() -> int:
         report["rays_per_s_best"] = max(report["rays_per_s_best"] or 0.0, previous.get("rays_per_s_best") or 0.0)
     if previous:
         report["scenes"].update(earlier_measurements(previous.get("scenes", {}), report["scenes"]))
+    report["budgets_seconds"] = sorted({p["budget_seconds"] for s in report["scenes"].values() for p in s["curve"]})
     report.update({"machine": machine_info(quick=args.quick, device=device_name(), command=" ".join(sys.argv)),
                    "scene_configs": scenes})
     write_result(path, with_agreement_gap(report))

@@ -9,7 +9,7 @@ import torch
 from srfpipe.cameras import scene_from_world_transform
 from srfpipe.config import section_defaults
 from srfpipe.srf import losses
-from srfpipe.srf.encodings import DenseGrid, HashGrid, _axis_weights
+from srfpipe.srf.encodings import DenseGrid, HashGrid, _axis_weights, weighted_rows
 from srfpipe.srf.field import contract, spherical_harmonics, uncontract
 from srfpipe.srf.model import SRFModel, build_model_config
 
@@ -83,6 +83,20 @@ def test_dense_grid_gradient_matches_autograd_of_the_same_interpolation(features
     (reference * weights_out).sum().backward()
     assert torch.allclose(grid(u), reference, atol=1e-6)
     assert torch.allclose(grid.table.grad, table.grad, atol=1e-5)
+
+
+@pytest.mark.parametrize("features", [1, 16])
+def test_the_fused_corner_sum_equals_the_gather_and_product(features):
+    # the CPU's embedding_bag pass and the gather + bmm that CUDA runs: one sum, two kernels
+    table = torch.randn(500, features)
+    index = torch.randint(0, 500, (2000, 8))
+    index[:100] = index[0]  # repeated corners
+    weights = torch.rand(2000, 8)
+    fused = weighted_rows(table, index, weights, fused=True)
+    gathered = weighted_rows(table, index, weights, fused=False)
+    reference = (table[index] * weights.unsqueeze(-1)).sum(1)
+    assert fused.shape == gathered.shape == (2000, features)
+    assert torch.allclose(fused, reference, atol=1e-5) and torch.allclose(gathered, reference, atol=1e-5)
 
 
 def test_hash_grid_output_shape_and_gradients():
