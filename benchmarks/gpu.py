@@ -10,7 +10,9 @@ Snakemake workflow with the shipped scene file (captures.py's configuration: the
    follows each run's own budget), scored by `srfpipe evaluate` on the held-out views: PSNR,
    object-pixel PSNR, mIoU against ground truth (the orchard, the plant) or the masks;
 3. `preset: paper` (the hash grid, 500k iterations): its steps/s over a short run and the hours
-   its 500k iterations would take at that rate.
+   its 500k iterations would take at that rate;
+4. `profile` (`--profile-steps`, 300 by default on CUDA): torch.profiler over that many orchard steps, the
+   operations and kernels that take the most time a step, and the host's waits and copies a step.
 
 `orchard_seconds_to_28_5_db` is the first budget whose held-out PSNR reaches 28.5 dB, linearly
 interpolated between budgets (null when none does).
@@ -175,6 +177,41 @@ def agreement(workdir: Path, steps: int, device: str, reference_only: bool = Fal
     return result
 
 
+def profile_training(workdir: Path, steps: int) -> dict:
+    """torch.profiler over `srfpipe train` of the orchard for `steps` fixed steps, in this process:
+    the operations and kernels that take the most time a step (device time on CUDA, else CPU time)
+    and how often the host waits for the device or copies to or from it."""
+    import time
+
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+
+    from srfpipe import cli
+
+    results, out = workdir / "results" / "orchard", workdir / "runs" / "orchard" / "profile.zarr"
+    shutil.rmtree(out, ignore_errors=True)
+    shutil.rmtree(out.with_name("profile.ckpt"), ignore_errors=True)
+    cuda = torch.cuda.is_available()
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+    start = time.perf_counter()
+    with profile(activities=activities) as prof:
+        cli.main(["train", "--images", str(results / "images.zarr"), "--labels", str(results / "labels.zarr"),
+                  "--out", str(out), "--scene", str(workdir / "config" / "scenes" / "orchard.yaml"),
+                  "--options", json.dumps({"device": "auto", "iterations": steps, "time_budget": 0, "eval_every": 0,
+                                           "snapshot_seconds": [], "checkpoint_every": 0})])
+    wall = time.perf_counter() - start
+    events = prof.key_averages()
+    own = (lambda e: e.self_device_time_total) if cuda else (lambda e: e.self_cpu_time_total)
+    top = sorted(events, key=own, reverse=True)[:10]
+    calls = {e.key: e.count for e in events}
+    return {"steps": steps, "wall_seconds_profiled": wall, "time": "device" if cuda else "cpu",
+            "per_step_ms": {e.key[:80]: own(e) / 1000.0 / steps for e in top},
+            "calls_per_step": {e.key[:80]: e.count / steps for e in top},
+            "total_ms_per_step": sum(own(e) for e in events) / 1000.0 / steps,
+            "host_waits_per_step": calls.get("cudaStreamSynchronize", 0) / steps,
+            "host_copies_per_step": calls.get("cudaMemcpyAsync", 0) / steps}
+
+
 def with_agreement_gap(report: dict) -> dict:
     """`cuda_vs_cpu.heldout_psnr_gap_db`: |CUDA - CPU| held-out PSNR of the agreement run, when both
     ran the same number of steps (the issue's tolerance: 0.5 dB)."""
@@ -208,6 +245,8 @@ def main() -> int:
                         help="length of each throughput run (default 30, quick 10; 0: none)")
     parser.add_argument("--agreement-steps", type=int, default=1500,
                         help="steps of the CUDA-against-CPU check on the orchard (0: none)")
+    parser.add_argument("--profile-steps", type=int, default=None,
+                        help="profile this many orchard training steps (default 300 on CUDA, none on the CPU; 0: none)")
     parser.add_argument("--cpu-reference", action="store_true",
                         help="on a CPU machine: train and evaluate the agreement run on the CPU and add it to gpu.json")
     build = parser.add_mutually_exclusive_group()
@@ -298,6 +337,11 @@ def main() -> int:
     if previous:
         report["scenes"].update(earlier_measurements(previous.get("scenes", {}), report["scenes"]))
     report["budgets_seconds"] = sorted({p["budget_seconds"] for s in report["scenes"].values() for p in s["curve"]})
+    profile_steps = args.profile_steps if args.profile_steps is not None else (300 if device_name() != "cpu" else 0)
+    if profile_steps and "orchard" in names:
+        report["profile"] = profile_training(args.workdir, profile_steps)
+    elif previous.get("profile"):
+        report["profile"] = dict(previous["profile"], measured_in_an_earlier_run=True)
     report.update({"machine": machine_info(quick=args.quick, device=device_name(), command=" ".join(sys.argv)),
                    "scene_configs": scenes})
     write_result(path, with_agreement_gap(report))
