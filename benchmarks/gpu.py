@@ -34,7 +34,8 @@ steps (seed 0) and evaluated; that srf.zarr distilled, baked and rendered on CUD
 `--cpu-reference` on a CPU machine trains and evaluates the same run on the CPU, and `heldout_psnr_gap_db` is
 the difference (the tolerance is 0.5 dB).
 
-On this project's lent GPU machines (no Snakemake, no network) the missing wheels (zarr, numcodecs, donfig,
+`benchmarks/gpu_lease.sh` does all of this for one lease: `prepare` here (inputs and wheels into
+benchmarks/work/gpu-lease), `run SECONDS` there. On this project's lent GPU machines (no Snakemake, no network) the missing wheels (zarr, numcodecs, donfig,
 google-crc32c, jsonschema and its three dependencies) were installed with `pip install --no-deps --target`, the
 repository put on PYTHONPATH, and an `srfpipe` script that runs `python3 -m srfpipe.cli` put on PATH.
 
