@@ -281,9 +281,8 @@ def main() -> int:
     reference = previous.get("cuda_vs_cpu", {}).get("cpu_reference")
     if previous.get("device") != device_name():
         # another device's speeds and curves are not merged; its correctness check is kept, named by its device
-        earlier_check = previous.get("cuda_vs_cpu")
-        previous = {"cuda_vs_cpu": {**earlier_check, "measured_on": earlier_check.get("measured_on", previous.get("device"))}} \
-            if earlier_check else {}
+        check = previous.get("cuda_vs_cpu")
+        previous = {"cuda_vs_cpu": {"measured_on": previous.get("device"), **check}} if check else {}
     report: dict = {"device": device_name(), "budgets_seconds": list(budgets), "scenes": {}}
     if args.agreement_steps and "orchard" in names and device_name() != "cpu":
         report["cuda_vs_cpu"] = agreement(args.workdir, args.agreement_steps, "cuda")

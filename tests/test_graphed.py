@@ -101,8 +101,8 @@ def test_static_steps_train_as_the_eager_steps_do(scene, device, encoding):
     # rounding, which grows through the optimizer steps (on CUDA bf16 autocast and atomic adds,
     # which sum in no fixed order, make two eager runs drift apart too) but stays far below what
     # a wrong step would give. The median of the last ten: on an H200 one of them differed by a
-    # fifth (0.62 against 0.78; cause not established), the rest
-    # within 1 %, and the mean missed a 2 % tolerance on that one step
+    # fifth (0.62 against 0.78; cause not established), the rest within 1 %, and the mean missed
+    # a 2 % tolerance on that one step
     assert run.graphed.capacity is not None and max(run.graphed.capacity) <= run.graphed.limit
     assert np.allclose(static[:5], eager[:5], rtol=1e-3), (static[:5], eager[:5])
     assert abs(np.median(static[-10:]) / np.median(eager[-10:]) - 1.0) < (2e-3 if device.type == "cpu" else 2e-2)

@@ -75,8 +75,8 @@ def weighted_rows(table: torch.Tensor, index: torch.Tensor, weights: torch.Tenso
     it takes a fifth of the time of the row gather and batched product (20 against 100 ms for
     100 k points into a 96^3 x 16 grid): a 320 x 240 render of the orchard 2.9-3.2 s against
     3.4-4.0, training steps unchanged (their time is elsewhere). CUDA keeps the gather and `bmm`,
-    the path its CUDA graph was measured with (an H200 profile puts ~4 ms of a 7-ms step in them:
-    gpu.json `profile_h200`); a fused pass there is for a lease to measure.
+    the path its CUDA graph was measured with (an H200 profile puts 4.1 of ~9 ms of kernels a step in
+    them: gpu.json `profile_h200`); a fused pass there is for a lease to measure.
     """
     if fused:
         return torch.nn.functional.embedding_bag(index, table, per_sample_weights=weights.to(table.dtype), mode="sum")
