@@ -98,6 +98,8 @@ def _metrics_text(metrics: dict | None) -> str:
                    if isinstance(train, (int, float)) and isinstance(heldout, (int, float)) else "")
         if isinstance(metrics.get("appearance_gap_db"), (int, float)):
             numbers += f" ({metrics['appearance_gap_db']:.1f} dB of the gap: each training image's own appearance)"
+        if isinstance(metrics.get("overfit_remedy"), str):
+            numbers += f": {metrics['overfit_remedy']}"
         parts.append("fits the training views, not new ones" + numbers)
     return ", ".join(parts)
 

@@ -185,3 +185,38 @@ def check_rotation(matrix: np.ndarray, tolerance: float = 1e-3) -> str | None:
     if np.linalg.det(matrix) < 0:
         return "is a reflection (det < 0)"
     return None
+
+
+def focus_point(camera_to_world: np.ndarray) -> np.ndarray:
+    """The point closest (least squares) to every camera's optical axis: what the cameras look at.
+
+    When the axes are (nearly) parallel, as in a forward-facing capture, there is no such point;
+    then it is the mean camera centre moved forward along the mean viewing direction by the spread
+    of the camera centres (at least 1 world unit).
+    """
+    centres = camera_to_world[:, :3, 3]
+    axes = camera_to_world[:, :3, 2]
+    projectors = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]  # I - d d^T per camera
+    a = projectors.sum(0)
+    b = np.einsum("nij,nj->i", projectors, centres)
+    eigenvalues = np.linalg.eigvalsh(a)
+    if eigenvalues[0] > 1e-2 * eigenvalues[-1]:
+        point = np.linalg.solve(a, b)
+        # the axes must meet in front of the cameras, not behind them
+        if np.median(np.einsum("ni,ni->n", point[None] - centres, axes)) > 0:
+            return point
+    spread = max(float(np.linalg.norm(centres - centres.mean(0), axis=1).max()), 1.0)
+    direction = axes.mean(0) / max(np.linalg.norm(axes.mean(0)), 1e-9)
+    return centres.mean(0) + spread * direction
+
+
+SURROUND_MIN_ANGLE_DEG = 90.0
+
+
+def cameras_surround(camera_to_world: np.ndarray, point: np.ndarray) -> bool:
+    """Whether cameras see `point` from directions at least `SURROUND_MIN_ANGLE_DEG` apart: they
+    stand round it (an orbit, a walk round an object, a ring looking down at a table), not all on
+    one side of it (a forward-facing capture: the fern's 20 views span 18 deg)."""
+    directions = camera_to_world[:, :3, 3] - point
+    directions /= np.maximum(np.linalg.norm(directions, axis=1, keepdims=True), 1e-12)
+    return bool(np.min(directions @ directions.T) <= np.cos(np.radians(SURROUND_MIN_ANGLE_DEG)))

@@ -192,6 +192,9 @@ def test_a_field_that_matches_only_the_training_views_is_flagged_and_the_summary
     warning = (f"fits the training views, not new ones: training views {overfit['train_view_psnr']:.1f} dB, "
                f"held-out {overfit['psnr']:.1f} dB (gap {overfit['generalization_gap_db']:.1f} dB > 6)")
     assert any(warning in record.getMessage() for record in caplog.records if record.levelno == logging.WARNING)
+    # the cameras stand round the scene and the field had no distortion loss: the flag says what to try
+    assert overfit["overfit_remedy"].startswith("try train.distortion: 0.01")
+    assert any(overfit["overfit_remedy"] in record.getMessage() for record in caplog.records)
 
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="srfpipe.evaluate"):
@@ -202,8 +205,31 @@ def test_a_field_that_matches_only_the_training_views_is_flagged_and_the_summary
     lines = summary_lines(["noisy", "exact"], results, tmp_path / "logs", chain=("eval",))
     assert lines[0].startswith("noisy  done") and lines[1].startswith("exact  done")
     assert (f"fits the training views, not new ones (train {overfit['train_view_psnr']:.1f} dB, "
-            f"held-out {overfit['psnr']:.1f} dB)") in lines[0]
+            f"held-out {overfit['psnr']:.1f} dB): try train.distortion: 0.01") in lines[0]
     assert "fits the training views" not in lines[1]
+
+
+def test_the_distortion_remedy_is_offered_only_where_it_helped():
+    """Advice for an overfit field: the distortion loss for cameras standing round their subject
+    (the panel's 360-degree captures gained), never for forward-facing ones (the fern lost) nor
+    for a field that had it already."""
+    from srfpipe.evaluate import overfit_remedy
+
+    def looking_at_origin(angles_deg):
+        poses = np.tile(np.eye(4), (len(angles_deg), 1, 1))
+        for pose, angle in zip(poses, np.radians(angles_deg)):
+            centre = 3.0 * np.array([np.cos(angle), np.sin(angle), 0.5])
+            forward = -centre / np.linalg.norm(centre)
+            right = np.cross(forward, [0.0, 0.0, 1.0])
+            right /= np.linalg.norm(right)
+            pose[:3, :3] = np.stack([right, np.cross(forward, right), forward], 1)
+            pose[:3, 3] = centre
+        return poses
+
+    orbit, facing = looking_at_origin(np.arange(0, 360, 30)), looking_at_origin(np.linspace(0, 20, 12))
+    assert "train.distortion" in overfit_remedy({"distortion": 0.0}, orbit)
+    assert overfit_remedy({"distortion": 0.01}, orbit) is None
+    assert overfit_remedy({"distortion": 0.0}, facing) is None
 
 
 def test_depth_image_orders_near_to_far_and_blanks_missing_depth():

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from srfpipe import cameras
+from srfpipe.cameras import cameras_surround, focus_point  # noqa: F401  (focus_point: part of this module's API)
 from srfpipe.poses.capture import Capture
 
 POINT_PERCENTILES = (1.0, 99.0)
@@ -35,29 +36,6 @@ def bounds_from_points(points: np.ndarray) -> np.ndarray:
     margin = POINT_MARGIN * (high - low)
     margin = np.maximum(margin, 1e-3 * max(float(np.max(high - low)), 1e-9))  # flat point sets
     return np.stack([low - margin, high + margin])
-
-
-def focus_point(camera_to_world: np.ndarray) -> np.ndarray:
-    """The point closest (least squares) to every camera's optical axis: what the cameras look at.
-
-    When the axes are (nearly) parallel, as in a forward-facing capture, there is no such point;
-    then it is the mean camera centre moved forward along the mean viewing direction by the spread
-    of the camera centres (at least 1 world unit).
-    """
-    centres = camera_to_world[:, :3, 3]
-    axes = camera_to_world[:, :3, 2]
-    projectors = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]  # I - d d^T per camera
-    a = projectors.sum(0)
-    b = np.einsum("nij,nj->i", projectors, centres)
-    eigenvalues = np.linalg.eigvalsh(a)
-    if eigenvalues[0] > 1e-2 * eigenvalues[-1]:
-        point = np.linalg.solve(a, b)
-        # the axes must meet in front of the cameras, not behind them
-        if np.median(np.einsum("ni,ni->n", point[None] - centres, axes)) > 0:
-            return point
-    spread = max(float(np.linalg.norm(centres - centres.mean(0), axis=1).max()), 1.0)
-    direction = axes.mean(0) / max(np.linalg.norm(axes.mean(0)), 1e-9)
-    return centres.mean(0) + spread * direction
 
 
 def bounds_from_frusta(
@@ -87,18 +65,6 @@ def bounds_from_frusta(
         return np.stack([focus - radius / 2, focus + radius / 2])
     cell = ticks[1] - ticks[0]
     return np.stack([kept.min(0) - cell, kept.max(0) + cell])
-
-
-SURROUND_MIN_ANGLE_DEG = 90.0
-
-
-def cameras_surround(camera_to_world: np.ndarray, point: np.ndarray) -> bool:
-    """Whether cameras see `point` from directions at least `SURROUND_MIN_ANGLE_DEG` apart: they
-    stand round it (an orbit, a walk round an object, a ring looking down at a table), not all on
-    one side of it (a forward-facing capture: the fern's 20 views span 18 deg)."""
-    directions = camera_to_world[:, :3, 3] - point
-    directions /= np.maximum(np.linalg.norm(directions, axis=1, keepdims=True), 1e-12)
-    return bool(np.min(directions @ directions.T) <= np.cos(np.radians(SURROUND_MIN_ANGLE_DEG)))
 
 
 def near_cameras(box: np.ndarray, camera_to_world: np.ndarray) -> np.ndarray:
