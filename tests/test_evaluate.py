@@ -211,8 +211,8 @@ def test_a_field_that_matches_only_the_training_views_is_flagged_and_the_summary
 
 def test_the_distortion_remedy_is_offered_only_where_it_helped():
     """Advice for an overfit field: the distortion loss for cameras standing round their subject
-    (the panel's 360-degree captures gained), never for forward-facing ones (the fern lost) nor
-    for a field that had it already."""
+    in a scene (the panel's 360-degree captures gained), never for forward-facing ones (the fern
+    lost), an empty backdrop (the small plant lost) or a field that had it already."""
     from srfpipe.evaluate import overfit_remedy
 
     def looking_at_origin(angles_deg):
@@ -227,9 +227,10 @@ def test_the_distortion_remedy_is_offered_only_where_it_helped():
         return poses
 
     orbit, facing = looking_at_origin(np.arange(0, 360, 30)), looking_at_origin(np.linspace(0, 20, 12))
-    assert "train.distortion" in overfit_remedy({"distortion": 0.0}, orbit)
-    assert overfit_remedy({"distortion": 0.01}, orbit) is None
-    assert overfit_remedy({"distortion": 0.0}, facing) is None
+    assert "train.distortion" in overfit_remedy({"distortion": 0.0}, orbit, background_empty=False)
+    assert overfit_remedy({"distortion": 0.01}, orbit, background_empty=False) is None
+    assert overfit_remedy({"distortion": 0.0}, facing, background_empty=False) is None
+    assert overfit_remedy({"distortion": 0.0}, orbit, background_empty=True) is None
 
 
 def test_depth_image_orders_near_to_far_and_blanks_missing_depth():
