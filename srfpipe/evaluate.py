@@ -35,6 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
+from srfpipe import cameras
+
 log = logging.getLogger("srfpipe.evaluate")
 
 # RGB colours for the default class table (apple, branch, leaf) and a fallback palette.
@@ -159,8 +161,6 @@ def overfit_remedy(train_config: dict, poses_scene, background_empty: bool) -> s
     """The setting to try when a field fits its training views only, or None: `train.distortion`
     when it was off, the background is a scene (not an empty backdrop) and the cameras stand round
     their focus point (`cameras.cameras_surround`)."""
-    from srfpipe import cameras
-
     if train_config.get("distortion") or background_empty:
         return None
     poses = np.asarray(poses_scene, dtype=np.float64)
@@ -381,9 +381,7 @@ def _iou_metrics(confusion: np.ndarray, names: list[str], suffix: str) -> dict:
 
 
 def world_from_scene_pose(world_from_scene: np.ndarray, pose_scene: np.ndarray) -> np.ndarray:
-    from srfpipe.cameras import transform_poses
-
-    return transform_poses(world_from_scene, pose_scene.astype(np.float64))
+    return cameras.transform_poses(world_from_scene, pose_scene.astype(np.float64))
 
 
 def _finite(value):

@@ -213,18 +213,12 @@ def test_the_distortion_remedy_is_offered_only_where_it_helped():
     """Advice for an overfit field: the distortion loss for cameras standing round their subject
     in a scene (the panel's 360-degree captures gained), never for forward-facing ones (the fern
     lost), an empty backdrop (the small plant lost) or a field that had it already."""
+    from srfpipe.cameras import look_at
     from srfpipe.evaluate import overfit_remedy
 
     def looking_at_origin(angles_deg):
-        poses = np.tile(np.eye(4), (len(angles_deg), 1, 1))
-        for pose, angle in zip(poses, np.radians(angles_deg)):
-            centre = 3.0 * np.array([np.cos(angle), np.sin(angle), 0.5])
-            forward = -centre / np.linalg.norm(centre)
-            right = np.cross(forward, [0.0, 0.0, 1.0])
-            right /= np.linalg.norm(right)
-            pose[:3, :3] = np.stack([right, np.cross(forward, right), forward], 1)
-            pose[:3, 3] = centre
-        return poses
+        return np.stack([look_at(3.0 * np.array([np.cos(a), np.sin(a), 0.5]), np.zeros(3))
+                         for a in np.radians(angles_deg)])
 
     orbit, facing = looking_at_origin(np.arange(0, 360, 30)), looking_at_origin(np.linspace(0, 20, 12))
     assert "train.distortion" in overfit_remedy({"distortion": 0.0}, orbit, background_empty=False)

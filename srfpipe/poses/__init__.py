@@ -16,7 +16,8 @@ module of the package imports from this one, so re-exporting the stage creates n
 
 from srfpipe.poses.align import align_poses, perturb_poses, pose_errors, similarity_align
 from srfpipe.poses.blender import read_blender
-from srfpipe.poses.bounds import bounds_from_frusta, bounds_from_points, focus_point, resolve_bounds
+from srfpipe.cameras import focus_point
+from srfpipe.poses.bounds import bounds_from_frusta, bounds_from_points, resolve_bounds
 from srfpipe.poses.capture import Capture, validate_capture
 from srfpipe.poses.colmap import colmap_camera_parameters, read_colmap
 from srfpipe.poses.ground_truth import attach_ground_truth

@@ -14,7 +14,6 @@ from __future__ import annotations
 import numpy as np
 
 from srfpipe import cameras
-from srfpipe.cameras import cameras_surround, focus_point  # noqa: F401  (focus_point: part of this module's API)
 from srfpipe.poses.capture import Capture
 
 POINT_PERCENTILES = (1.0, 99.0)
@@ -44,7 +43,7 @@ def bounds_from_frusta(
 ) -> np.ndarray:
     """(2, 3) box of the region (nearly) every camera sees, for captures without sparse points.
 
-    Heuristic: take the cameras' focus point (`focus_point`) and a cube around it whose half-size
+    Heuristic: take the cameras' focus point (`cameras.focus_point`) and a cube around it whose half-size
     is the median camera distance to it; sample the cube on a grid and keep the points that
     project inside the image, in front of the camera, for at least `visible_fraction` of the
     cameras (the intersection of the frusta, tolerant to a few stray views). For cameras on a ring
@@ -52,7 +51,7 @@ def bounds_from_frusta(
     one grid cell. When fewer than 8 points are seen by enough cameras, the box is the focus
     point +- half the median camera distance.
     """
-    focus = focus_point(camera_to_world)
+    focus = cameras.focus_point(camera_to_world)
     radius = float(np.median(np.linalg.norm(camera_to_world[:, :3, 3] - focus, axis=1)))
     radius = max(radius, 1e-6)
     ticks = np.linspace(-radius, radius, resolution)
@@ -68,7 +67,7 @@ def bounds_from_frusta(
 
 
 def near_cameras(box: np.ndarray, camera_to_world: np.ndarray) -> np.ndarray:
-    """`box` clipped to the cube round the cameras' focus point (`focus_point`) whose half-size is
+    """`box` clipped to the cube round the cameras' focus point (`cameras.focus_point`) whose half-size is
     the cameras' median distance to it, when the cameras surround that point.
 
     Inward-facing captures: the subject lies nearer the point the cameras look at than the
@@ -76,8 +75,8 @@ def near_cameras(box: np.ndarray, camera_to_world: np.ndarray) -> np.ndarray:
     background, held by the contracted shell. Unchanged when the cameras do not surround their
     focus point, or when the clipped box would not hold it.
     """
-    focus = focus_point(camera_to_world)
-    if not cameras_surround(camera_to_world, focus):
+    focus = cameras.focus_point(camera_to_world)
+    if not cameras.cameras_surround(camera_to_world, focus):
         return box
     radius = float(np.median(np.linalg.norm(camera_to_world[:, :3, 3] - focus, axis=1)))
     clipped = np.stack([np.maximum(box[0], focus - radius), np.minimum(box[1], focus + radius)])
