@@ -457,6 +457,15 @@ def main() -> int:
             if f"{name}-reference" in references and (results / name / "srf.zarr").exists():
                 per_scene[name]["reference"] = reference_report(args.workdir, name)
     previous_file = result_path(f"captures_candidate_{candidate_slug(overrides)}" if overrides else "captures", args.quick)
+    # a capture whose build stopped before its held-out metrics (a failed job, --until) measured nothing:
+    # its earlier measurement stays, never an empty row in its place
+    unmeasured = sorted(name for name, entry in per_scene.items() if entry.get("psnr") is None)
+    if unmeasured:
+        print(f"no held-out metrics for {', '.join(unmeasured)}: their earlier entries are kept")
+    per_scene = {name: entry for name, entry in per_scene.items() if name not in unmeasured}
+    if not per_scene:
+        print(f"nothing measured: {previous_file} is left as it was")
+        return 1
     measured_now = sorted(per_scene)
     previous_configs = {}
     previous_report = json.loads(previous_file.read_text()) if previous_file.exists() else {}
@@ -469,7 +478,8 @@ def main() -> int:
     report: dict = {"overrides": overrides, "scenes": per_scene, "panel": panel, "measured_now": measured_now,
                     "workflow_seconds": seconds,
                     "machine": machine_info(quick=args.quick),
-                    "scene_configs": {**{k: v for k, v in previous_configs.items() if k in per_scene}, **scenes}}
+                    "scene_configs": {**{k: v for k, v in previous_configs.items() if k in per_scene},
+                                      **{k: v for k, v in scenes.items() if k in measured_now}}}
     fox, plant, orchard = (per_scene.get(n, {}) for n in ("fox", "plant", "orchard"))
     report.update({
         "fox_psnr": fox.get("psnr"), "fox_ssim": fox.get("ssim"),
