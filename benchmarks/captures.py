@@ -44,7 +44,7 @@ import numpy as np
 import yaml
 
 from common import (REPO, earlier_measurements, holdout_every, machine_info, measured_steps, merge, renamed_paths,
-                    result_path, rule_seconds, run_command, run_workflow, write_result, write_workdir)
+                    result_path, rule_seconds, run_workflow, write_result, write_workdir)
 
 SHARED = (REPO / ".." / "shared" / "data").resolve()
 FOX = SHARED / "fox"
@@ -236,13 +236,18 @@ def reference_scenes(results: Path, scenes: dict[str, dict]) -> dict[str, dict]:
 def reference_report(workdir: Path, name: str) -> dict:
     """The scene's field on its reference scene's held-out views (`srfpipe evaluate`, the rule's
     stage, into results/<name>/eval-reference)."""
+    from srfpipe.evaluate import evaluate_field
+    from srfpipe.srf.data import load_posed_images
+    from srfpipe.srf.query import SemanticRadianceField
+
     results, reference = workdir / "results" / name, workdir / "results" / f"{name}-reference"
     out = results / "eval-reference"
-    run_command(["srfpipe", "evaluate", "--images", str(reference / "images.zarr"), "--labels",
-                 str(reference / "labels.zarr"), "--srf", str(results / "srf.zarr"), "--out", str(out),
-                 "--scene", str(workdir / "config" / "scenes" / f"{name}.yaml")],
-                log=workdir / "logs" / name / "evaluate-reference.log")
-    metrics = json.loads((out / "metrics.json").read_text())
+    # in process, not `srfpipe evaluate`: that refuses images the field was not trained on, and these are
+    # deliberately the same capture at the reference resolution (evaluate_field renders any build's views)
+    options = yaml.safe_load((workdir / "config" / "scenes" / f"{name}.yaml").read_text()).get("evaluate") or {}
+    field = SemanticRadianceField.load(results / "srf.zarr", "auto")
+    data = load_posed_images(reference / "images.zarr", reference / "labels.zarr")
+    metrics = evaluate_field(field, data, out, options, reference / "labels.zarr", results / "srf.zarr")
     return {"downscale": REFERENCE_DOWNSCALE, **{k: metrics[k] for k in REFERENCE_KEYS if k in metrics}}
 
 

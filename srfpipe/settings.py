@@ -352,7 +352,11 @@ class TrainSettings(SettingsSection):
     the frame) would otherwise get a few rays a step. 0 = ..."""
     background_opacity: float | None = None
     """weight of the loss on the opacity inside the model box of rays whose pixel shows none of the
-    classes (null: chosen from the data, see the README)"""
+    classes on an empty background (null: chosen from the data, see the README)"""
+    background_rays: str = 'auto'
+    """which rays the empty-background loss empties: unmasked (every pixel no mask marks) or
+    backdrop (those that also have the backdrop's colour, so a part the masks miss keeps its
+    matter)"""
     tv_density: float = 0.0
     """weight of the total-variation loss on the dense density grid (Plenoxels)"""
     tv_features: float = 0.0

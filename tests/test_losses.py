@@ -97,6 +97,25 @@ def test_total_variation_at_random_cells_estimates_the_exact_value_and_flattens_
     assert float(after[2, 25, 29]) < 1.0 < 4.0 < float(after[12, 14, 16])
 
 
+def test_background_opacity_spares_the_parts_the_masks_missed():
+    """On an empty backdrop only rays whose pixel shows the backdrop's colour are emptied: a stem
+    the masks missed (no class, but green) keeps its opacity, and so does a masked pixel as dark
+    as the backdrop; frames without masks count by their colour alone."""
+    colour = torch.tensor([15.0, 14.0, 14.0]) / 255
+    rgb = torch.tensor([[16.0, 14.0, 20.0],   # backdrop, no class: emptied
+                        [60.0, 120.0, 40.0],  # a part the masks missed: kept
+                        [14.0, 14.0, 14.0],   # masked, as dark as the backdrop: kept
+                        [15.0, 15.0, 15.0]]) / 255  # backdrop in a frame without masks: emptied
+    labels = torch.tensor([[0.0], [0.0], [1.0], [0.0]])
+    box_accumulation = torch.tensor([0.2, 0.9, 0.7, 0.4])
+    backdrop = losses.shows_backdrop(rgb, colour, 12.0)
+    assert backdrop.tolist() == [True, False, True, True]
+    valid = torch.tensor([True, True, True, False])
+    assert float(losses.background_opacity_loss(box_accumulation, labels, valid, backdrop)) == pytest.approx(0.3)
+    # without the backdrop's colour: every unmasked pixel of a labelled frame, the stem included
+    assert float(losses.background_opacity_loss(box_accumulation, labels, valid)) == pytest.approx(0.55)
+
+
 def test_background_opacity_loss_clears_the_box_along_rays_that_show_no_class():
     """Rays whose pixel shows none of the classes lose the opacity they gather inside the box;
     the contracted shell and the rays that show a class are not asked anything."""

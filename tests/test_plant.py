@@ -209,6 +209,21 @@ def test_shipped_plant_scene_to_labels(workflow):
     info = read_provenance(results / "labels.zarr")
     assert info["background"] == "empty" and info["background_from"] == "images" and info["background_spread"] < 12
     assert data.bounds_source == "mask_hull" and data.background_empty
+    # the trainer empties the rays whose pixel has the backdrop's near-black colour
+    colour, level = data.backdrop
+    assert max(colour) < 30 and 12 <= level < 30
+    images_rgb = np.asarray(images["images"][:]).astype(int)
+    shows = (np.abs(images_rgb - np.array(colour)).max(axis=-1) <= level)
+    assert 0.5 < shows.mean() < 0.999 and shows[data.label > 0].mean() < 0.2
+    # masks of the whole plant: every unmasked ray is emptied; the berries' masks alone miss the rest
+    # of the plant, so only the rays that show the backdrop are
+    from srfpipe.srf.trainer import background_rays, mask_coverage
+
+    assert mask_coverage(data) > 0.8 and background_rays(data) == "unmasked"
+    composite_masks(results / "images.zarr", [str(results / "masks" / "berry.zarr")], {},
+                    workflow.root / "berries.zarr", progress=False)
+    berries = load_posed_images(results / "images.zarr", workflow.root / "berries.zarr")
+    assert berries.background_empty and mask_coverage(berries) < 0.3 and background_rays(berries) == "backdrop"
     region = data.semantic_bounds_world
     np.testing.assert_allclose(data.bounds_world, region)
     assert np.all(region[0] <= obj_lo + 1.0) and np.all(region[1] >= obj_hi - 1.0), (region, obj_lo, obj_hi)

@@ -546,3 +546,22 @@ def test_background_auto_sees_a_backdrop_as_empty_and_a_room_as_a_scene(tmp_path
     assert found["backdrop"]["background"] == "empty" and found["backdrop"]["background_spread"] <= 4
     assert found["room"]["background"] == "scene" and found["room"]["background_spread"] > 50
     assert found["room"]["background_from"] == "images"
+    # the trainer's empty-background loss reads which pixels show the backdrop from these two
+    assert np.allclose(found["backdrop"]["backdrop_colour"], 15.5, atol=1) and found["backdrop"]["backdrop_level"] == 12
+    assert found["room"]["backdrop_level"] is None
+
+
+def test_a_scene_that_says_its_background_is_empty_gets_the_backdrop_measured(tmp_path):
+    """labels.background: empty from the config still measures the backdrop's colour, so the
+    trainer knows which pixels show it; a scene without classes has nothing to measure against."""
+    rng = np.random.default_rng(1)
+    object_mask = np.zeros((3, 30, 40), np.float32)
+    object_mask[:, 10:20, 15:25] = 1.0
+    images = np.full((3, 30, 40, 3), 200, np.uint8) + rng.integers(0, 6, (3, 30, 40, 3), dtype=np.uint8)
+    path = write_images(tmp_path / "white.zarr", images)
+    mask = write_mask(tmp_path / "white-apple.zarr", "apple", object_mask)
+    out = composite_masks(path, [mask], {"background": "empty"}, tmp_path / "labels.zarr", progress=False)
+    info = meta(open_artifact(out))
+    assert info["background"] == "empty" and info["background_from"] == "config"
+    assert np.allclose(info["backdrop_colour"], 202.5, atol=1.5)
+    assert info["backdrop_level"] == max(12, 3 * info["background_spread"])

@@ -261,7 +261,7 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
                         else backdrop_statistics(frames, hull_mask, labelled))
             if backdrop is not None:
                 spread, colour = backdrop
-                level = max(EMPTY_BACKGROUND_SPREAD, SILHOUETTE_SPREADS * spread)
+                level = backdrop_level(spread)
                 carving, carve_mask = None, silhouette_hull_mask(frames, hull_mask, labelled, colour, level)
                 log.info("the %d frames without masks carve the hull by their silhouettes against the empty "
                          "backdrop (colour %s, more than %.0f levels away)", int((~labelled).sum()),
@@ -353,18 +353,29 @@ def resolve_background(frames: Frames, hull_mask, asked: str, has_classes: bool,
     on a studio sweep or against a clear sky) is empty; a room, a table or the ground is a scene.
     Without classes nothing marks the objects: a scene.
     """
-    if asked != "auto":
+    if asked == "scene" or (asked == "empty" and not has_classes):
         return {"background": asked, "background_from": "config"}
     if not has_classes:
         return {"background": "scene", "background_from": "no classes"}
     found = backdrop_statistics(frames, hull_mask, labelled)
     spread = None if found is None else found[0]
+    colour = None if found is None else found[1]
+    if asked == "empty":  # the scene says so; the backdrop's colour is still measured (backdrop_level)
+        return {"background": "empty", "background_from": "config", "background_spread": spread,
+                "backdrop_colour": colour, "backdrop_level": backdrop_level(spread)}
     empty = spread is not None and spread <= EMPTY_BACKGROUND_SPREAD
     log.info("background %s: the unmasked pixels lie within %s levels of their median colour (90 %%; empty "
              "at most %d)", "empty" if empty else "a scene", "?" if spread is None else f"{spread:.0f}",
              EMPTY_BACKGROUND_SPREAD)
     return {"background": "empty" if empty else "scene", "background_from": "images", "background_spread": spread,
-            "backdrop_colour": None if found is None else found[1]}
+            "backdrop_colour": colour, "backdrop_level": backdrop_level(spread) if empty else None}
+
+
+def backdrop_level(spread: float | None) -> float | None:
+    """8-bit levels (largest channel difference) within which a pixel shows the empty backdrop's
+    colour; farther, it shows matter (SILHOUETTE_SPREADS times the backdrop's spread, at least
+    EMPTY_BACKGROUND_SPREAD)."""
+    return None if spread is None else max(EMPTY_BACKGROUND_SPREAD, SILHOUETTE_SPREADS * spread)
 
 
 def scene_bounds(frames: Frames, hull_mask, policy: str, has_classes: bool, background: str = "scene",

@@ -40,6 +40,9 @@ class PosedImages:
     # occupancy cache and the simulator
     semantic_bounds_world: np.ndarray | None = None
     background_empty: bool = False  # labels.background: pixels no mask marks look through empty space
+    # on an empty background: its colour (RGB, 8-bit levels) and the largest channel difference
+    # within which a pixel shows it (labels.zarr backdrop_colour, backdrop_level); None when unknown
+    backdrop: tuple[list[float], float] | None = None
     labelled: np.ndarray | None = None  # (N,) bool: frames with masks (None: every frame, or no labels)
 
     @property
@@ -118,6 +121,7 @@ def load_posed_images(images_path, labels_path=None) -> PosedImages:
     classes: list[str] = []
     semantic_bounds = None
     background_empty = False
+    backdrop = None
     labelled = None
     if labels_path is not None:
         labels_path = Path(labels_path)
@@ -155,6 +159,12 @@ def load_posed_images(images_path, labels_path=None) -> PosedImages:
                 labelled = None
         # labels.zarr written before labels.background existed: a hull box meant an empty background
         background_empty = lattrs.get("background", "empty" if bounds_source == "mask_hull" else "scene") == "empty"
+        colour, level = lattrs.get("backdrop_colour"), lattrs.get("backdrop_level")
+        if background_empty and colour is not None and level is not None:
+            if len(colour) != 3 or not float(level) >= 0:
+                raise ValueError(f"{labels_path}: attributes backdrop_colour {colour} / backdrop_level {level} must be "
+                                 "an RGB colour and a level >= 0")
+            backdrop = ([float(c) for c in colour], float(level))
         if "label" in lgroup:
             label = np.asarray(lgroup["label"][...])
             # label values follow the config's prompt order (a dropped class leaves a gap):
@@ -175,7 +185,7 @@ def load_posed_images(images_path, labels_path=None) -> PosedImages:
         classes=classes, scene_from_world=scene_from_world, world_from_scene=world_from_scene,
         bounds_world=bounds, provenance=attrs, bounds_source=bounds_source,
         semantic_bounds_world=bounds if semantic_bounds is None else semantic_bounds,
-        background_empty=background_empty, labelled=labelled,
+        background_empty=background_empty, backdrop=backdrop, labelled=labelled,
     )
 
 

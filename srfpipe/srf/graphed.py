@@ -202,7 +202,7 @@ class GraphedSteps:
         with self.autocast if self.autocast is not None else run.autocast:
             outputs = model(origins, directions, self.image, self.jitter,
                             box_accumulation=bool(run.settings.background_opacity))
-        terms = loss_terms(run.settings, model, outputs, rgb, labels, valid, None)
+        terms = loss_terms(run.settings, model, outputs, rgb, labels, valid, None, run.backdrop)
         loss = sum_terms(terms)
         loss.backward()
         run.optimizer.step()

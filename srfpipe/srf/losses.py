@@ -54,21 +54,36 @@ def total_loss(
 
 
 def background_opacity_loss(box_accumulation: torch.Tensor, labels: torch.Tensor,
-                            valid: torch.Tensor | None = None) -> torch.Tensor:
-    """Mean opacity inside the model box of the rays whose pixel shows none of the classes.
+                            valid: torch.Tensor | None = None,
+                            shows_backdrop: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean opacity inside the model box of the rays whose pixel shows the empty backdrop.
 
-    When the box is the masks' visual hull, such a ray crosses the box through empty space: any
-    opacity it gathers there is fog or a floater that the photometric loss cannot see against a
-    plain background (dark density in front of a dark backdrop costs nothing in the training
-    views and hides the object in the others). box_accumulation (R,), labels (R, C) multi-hot;
+    Such a ray crosses the box through empty space: any opacity it gathers there is fog or a
+    floater that the photometric loss cannot see against a plain background (dark density in
+    front of a dark backdrop costs nothing in the training views and hides the object in the
+    others). box_accumulation (R,), labels (R, C) multi-hot.
+
+    `shows_backdrop` (R,): the pixel has the backdrop's colour (from the image, in every frame).
+    A pixel counts when it shows the backdrop and none of the classes: a part the masks missed (a
+    thin stem, a leaf dropped from one view's mask) is not backdrop-coloured and is not emptied,
+    and a pixel a mask marks keeps its matter even where it is as dark as the backdrop.
+    Without it (labels.zarr written before backdrop_level), a pixel no mask marks counts, and
     `valid` (R,) excludes rays of frames without masks (their zero labels say nothing).
     """
     background = labels.sum(dim=-1) == 0
-    if valid is not None:
+    if shows_backdrop is not None:
+        background = background & shows_backdrop
+    elif valid is not None:
         background = background & valid
     # a masked mean, not a boolean index: no host sync on CUDA; 0 when no ray shows background
     weight = background.float()
     return (box_accumulation.float() * weight).sum() / weight.sum().clamp_min(1.0)
+
+
+def shows_backdrop(rgb: torch.Tensor, colour: torch.Tensor, level: float) -> torch.Tensor:
+    """(R,) bool: pixels (R, 3) in [0, 1] within `level` 8-bit levels of the backdrop `colour` (3,)
+    in every channel."""
+    return ((rgb.float() - colour) * 255.0).abs().amax(dim=-1) <= level
 
 
 def total_variation(table: torch.Tensor, resolution, samples: int | None = None,

@@ -266,6 +266,39 @@ def resolve_grid_defaults(settings, data) -> dict:
     return changes
 
 
+# background_rays auto: masks that mark less than this share of the pixels not of the backdrop's
+# colour miss parts of the objects (soft, partial masks: the small plant's mark 0.20 of them; the
+# plant's ground-truth masks 0.90, the rest being edge pixels that blend plant and backdrop)
+MIN_MASK_COVERAGE = 0.5
+
+
+def mask_coverage(data) -> float | None:
+    """Of the labelled frames' pixels that are not the empty backdrop's colour (data.backdrop), the
+    share some mask marks; None without a known backdrop or any such pixel."""
+    if data.backdrop is None or data.multihot is None:
+        return None
+    colour, level = data.backdrop
+    frames = np.flatnonzero(np.ones(data.count, bool) if data.labelled is None else data.labelled)
+    matter = marked = 0
+    for i in frames:  # one frame at a time: the int16 difference of every frame at once is large
+        shows_matter = np.abs(data.images[i].numpy().astype(np.int16) - np.asarray(colour)).max(axis=-1) > level
+        matter += int(shows_matter.sum())
+        marked += int((shows_matter & (data.multihot[i].numpy().max(axis=-1) > 0)).sum())
+    return marked / matter if matter else None
+
+
+def background_rays(data) -> str:
+    """`train.background_rays` auto: `backdrop` when the masks mark under MIN_MASK_COVERAGE of the
+    pixels that show matter (they miss parts that the unmasked rule would empty), else `unmasked`."""
+    coverage = mask_coverage(data)
+    if coverage is None:
+        return "unmasked"
+    choice = "backdrop" if coverage < MIN_MASK_COVERAGE else "unmasked"
+    log.info("background_rays %s (the masks mark %.0f %% of the pixels that are not the backdrop's colour)",
+             choice, 100 * coverage)
+    return choice
+
+
 def resolve_data_defaults(settings, data):
     """The train settings whose default depends on the capture, resolved (and recorded as such).
 
@@ -273,9 +306,10 @@ def resolve_data_defaults(settings, data):
     initial_opacity: 0.01 per step when the bounds are known (config, ground truth), 0.001 when
     they were estimated (see TRUSTED_BOUNDS).
     background_opacity: when the capture says its background is empty (labels.background), a
-    pixel that shows none of the classes sees empty space through the box, so opacity there is
-    penalised; otherwise (the orchard's ground, a room) the box holds things the classes do not
+    pixel that shows the backdrop (its colour, and none of the classes) sees empty space through
+    the box, so opacity there is penalised; otherwise (the orchard's ground, a room) the box holds things the classes do not
     name, so it is off.
+    background_rays: which of those rays (see `background_rays`).
     appearance_dim: a real capture's images differ in exposure and white balance, which a
     per-image embedding absorbs (Nerfacto, NeRF-W); a generated capture (it has ground truth)
     has none, and the embedding would only add parameters.
@@ -293,6 +327,8 @@ def resolve_data_defaults(settings, data):
         changes["background_opacity"] = EMPTY_BACKGROUND_OPACITY if empty else 0.0
         log.info("background_opacity %g (background %s)", changes["background_opacity"],
                  "empty" if data.background_empty else "a scene")
+    if settings.background_rays == "auto":
+        changes["background_rays"] = background_rays(data) if data.background_empty else "unmasked"
     if settings.appearance_dim is None:
         changes["appearance_dim"] = 0 if data.gt_label is not None else REAL_CAPTURE_APPEARANCE_DIM
         log.info("appearance_dim %d (%s capture)", changes["appearance_dim"],
@@ -355,6 +391,7 @@ class TrainingRun:
     loss: Any = None  # their sum
     outputs: dict = field(default_factory=dict)  # the last step's render outputs
     graphed: Any = None  # srf.graphed.GraphedSteps when the step is replayed as a CUDA graph
+    backdrop: Any = None  # (colour (3,) in [0, 1] on the device, level in 8-bit levels): data.backdrop
 
 
 CURVE_KEYS = ("step", "seconds", "loss", "photometric", "semantic", "psnr", "samples_per_ray", "shaded_per_ray",
@@ -426,7 +463,7 @@ def training_step(run: TrainingRun, step: int):
     with run.autocast:
         outputs = model(origins, directions, image, jitter, box_accumulation=bool(s.background_opacity))
     valid = None if run.labelled_frames is None else run.labelled_frames[image]
-    terms = loss_terms(s, model, outputs, rgb, labels, valid, generator)
+    terms = loss_terms(s, model, outputs, rgb, labels, valid, generator, run.backdrop)
     loss = sum_terms(terms)
     run.watch.update(terms, loss)
     run.optimizer.zero_grad(set_to_none=True)
@@ -440,10 +477,11 @@ def training_step(run: TrainingRun, step: int):
     return terms, loss, outputs
 
 
-def loss_terms(s: TrainSettings, model, outputs: dict, rgb, labels, valid, generator) -> dict:
+def loss_terms(s: TrainSettings, model, outputs: dict, rgb, labels, valid, generator, backdrop=None) -> dict:
     """The step's loss terms, each times its weight from the settings, by name: L_photo (Eq. 5),
     lambda L_sem (Eq. 4, on the frames that had masks), and the regularisers the settings switch
-    on (mip-NeRF 360's distortion, the empty-background opacity, Plenoxels' total variation)."""
+    on (mip-NeRF 360's distortion, the empty-background opacity on the rays whose pixel shows
+    the `backdrop` (colour, level), Plenoxels' total variation)."""
     from srfpipe.srf import losses
 
     terms = {"photometric": losses.photometric_loss(outputs["rgb"], rgb),
@@ -452,7 +490,8 @@ def loss_terms(s: TrainSettings, model, outputs: dict, rgb, labels, valid, gener
         terms["distortion"] = s.distortion * outputs["distortion"]
     if s.background_opacity:
         terms["background_opacity"] = s.background_opacity * losses.background_opacity_loss(
-            outputs["box_accumulation"], labels, valid)
+            outputs["box_accumulation"], labels, valid,
+            None if backdrop is None else losses.shows_backdrop(rgb, *backdrop))
     if s.tv_density and model.field.density_grid:
         terms["tv_density"] = s.tv_density * losses.grid_total_variation(model.field.inner_sigma, s.tv_samples, generator)
     if s.tv_features and model.field.density_grid:
@@ -510,6 +549,13 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
     ckpt_dir = Path(checkpoints) if checkpoints else out.with_name(out.name.removesuffix(".zarr") + ".ckpt")
     run = TrainingRun(settings, data, holdout_every, train_views, heldout_views, device, model, optimizer, scaler, autocast, precision,
                       fp, ckpt_dir, out, focus, labelled_frames, seen_fraction, watch=None)
+    if settings.background_opacity and settings.background_rays == "backdrop":
+        if data.backdrop is None:
+            log.warning("background_rays backdrop: %s records no backdrop colour (labels.zarr of an older "
+                        "composite, or a background that is not empty); every unmasked ray is emptied", labels)
+        else:
+            colour, level = data.backdrop
+            run.backdrop = (torch.tensor(colour, device=device) / 255.0, level)
     state = latest_checkpoint(ckpt_dir, fp)
     if state is not None:
         model.load_state_dict(state["model"])
