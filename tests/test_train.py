@@ -305,6 +305,8 @@ def test_background_penalty_only_where_the_capture_says_its_background_is_empty(
     assert resolve_data_defaults({"background_opacity": None}, scene).background_opacity == 0.0
     scene.background_empty = True
     assert resolve_data_defaults({"background_opacity": None}, scene).background_opacity == EMPTY_BACKGROUND_OPACITY
+    # no backdrop colour recorded (labels.zarr of an older composite): every unmasked ray, as before
+    assert resolve_data_defaults({"background_opacity": None}, scene).background_rays == "unmasked"
     scene.classes = []  # nothing marks what is not background
     assert resolve_data_defaults({"background_opacity": None}, scene).background_opacity == 0.0
 
@@ -338,7 +340,8 @@ def camera_ring_data(focal: float, distance: float = 3.0, n: int = 8):
     return SimpleNamespace(bounds_world=bounds, scene_from_world=scene_from_world_transform(*bounds),
                            poses_scene=torch.as_tensor(poses, dtype=torch.float32),
                            intrinsics=torch.tensor([[focal, focal, 64.0, 64.0]] * n),
-                           bounds_source="config", gt_label=None, background_empty=False, classes=[])
+                           bounds_source="config", gt_label=None, background_empty=False, classes=[],
+                           backdrop=None, multihot=None)
 
 
 @pytest.mark.parametrize("focal, cells, levels", [(100.0, 96, 1), (300.0, 192, 3), (3000.0, 192, 3)])
