@@ -234,8 +234,8 @@ def reference_scenes(results: Path, scenes: dict[str, dict]) -> dict[str, dict]:
 
 
 def reference_report(workdir: Path, name: str) -> dict:
-    """The scene's field on its reference scene's held-out views (`srfpipe evaluate`, the rule's
-    stage, into results/<name>/eval-reference)."""
+    """The scene's field on its reference scene's held-out views (the evaluate stage's
+    `evaluate_field`, into results/<name>/eval-reference)."""
     from srfpipe.evaluate import evaluate_field
     from srfpipe.srf.data import load_posed_images
     from srfpipe.srf.query import SemanticRadianceField

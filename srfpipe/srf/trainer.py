@@ -275,15 +275,20 @@ MIN_MASK_COVERAGE = 0.5
 def mask_coverage(data) -> float | None:
     """Of the labelled frames' pixels that are not the empty backdrop's colour (data.backdrop), the
     share some mask marks; None without a known backdrop or any such pixel."""
+    import torch
+
+    from srfpipe.srf.losses import shows_backdrop
+
     if data.backdrop is None or data.multihot is None:
         return None
     colour, level = data.backdrop
+    colour = torch.tensor(colour) / 255.0
     frames = np.flatnonzero(np.ones(data.count, bool) if data.labelled is None else data.labelled)
     matter = marked = 0
-    for i in frames:  # one frame at a time: the int16 difference of every frame at once is large
-        shows_matter = np.abs(data.images[i].numpy().astype(np.int16) - np.asarray(colour)).max(axis=-1) > level
+    for i in frames:  # one frame at a time: a float copy of every frame at once is large
+        shows_matter = ~shows_backdrop(data.images[i].float() / 255.0, colour, level)
         matter += int(shows_matter.sum())
-        marked += int((shows_matter & (data.multihot[i].numpy().max(axis=-1) > 0)).sum())
+        marked += int((shows_matter & (data.multihot[i].amax(dim=-1) > 0)).sum())
     return marked / matter if matter else None
 
 
@@ -307,8 +312,8 @@ def resolve_data_defaults(settings, data):
     they were estimated (see TRUSTED_BOUNDS).
     background_opacity: when the capture says its background is empty (labels.background), a
     pixel that shows the backdrop (its colour, and none of the classes) sees empty space through
-    the box, so opacity there is penalised; otherwise (the orchard's ground, a room) the box holds things the classes do not
-    name, so it is off.
+    the box, so opacity there is penalised; otherwise (the orchard's ground, a room) the box holds
+    things the classes do not name, so it is off.
     background_rays: which of those rays (see `background_rays`).
     appearance_dim: a real capture's images differ in exposure and white balance, which a
     per-image embedding absorbs (Nerfacto, NeRF-W); a generated capture (it has ground truth)
