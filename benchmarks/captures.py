@@ -203,6 +203,27 @@ def scene_report(results: Path, workdir: Path, name: str) -> dict:
     return report
 
 
+def stale_fields(results: Path, scenes: dict[str, dict]) -> list[str]:
+    """Scenes whose srf.zarr records train settings other than their scene file's (a build that
+    did not retrain after the candidate or the step count changed)."""
+    from srfpipe.artifacts import read_provenance
+    from srfpipe.settings import TrainSettings
+
+    defaults = TrainSettings.from_options({}).as_dict()  # what a field recorded before a key existed
+    stale = []
+    for name, scene in scenes.items():
+        srf = results / name / "srf.zarr"
+        if not srf.exists():
+            continue
+        trained = {**defaults, **read_provenance(srf).get("config", {})}
+        # values the trainer resolves from the data (auto, null) are recorded resolved: not compared
+        asked = {k: v for k, v in scene.get("train", {}).items()
+                 if k != "snapshot_seconds" and v is not None and v != "auto"}
+        if any(trained.get(k) != v for k, v in asked.items()):
+            stale.append(name)
+    return stale
+
+
 def five_minute_metrics(results: Path, info: dict) -> dict:
     """Held-out PSNR and SSIM of the run's snapshot at FIVE_MINUTES of training (what one 10-minute
     run had reached by then), rendered by the same code as peers.py's; empty without that snapshot."""
@@ -463,7 +484,11 @@ def main() -> int:
                 per_scene[name]["reference"] = reference_report(args.workdir, name)
     previous_file = result_path(f"captures_candidate_{candidate_slug(overrides)}" if overrides else "captures", args.quick)
     # a capture whose build stopped before its held-out metrics (a failed job, --until) measured nothing:
-    # its earlier measurement stays, never an empty row in its place
+    # its earlier measurement stays, never an empty row in its place; nor does a field that an earlier
+    # build trained with other settings (Snakemake under --rerun-triggers mtime did not retrain it)
+    for name in stale_fields(results, scenes):
+        print(f"{name}: srf.zarr was not trained with this run's train settings (stale; add --forcerun train)")
+        per_scene[name]["psnr"] = None
     unmeasured = sorted(name for name, entry in per_scene.items() if entry.get("psnr") is None)
     if unmeasured:
         print(f"no held-out metrics for {', '.join(unmeasured)}: their earlier entries are kept")

@@ -231,10 +231,13 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
     unlabelled_chosen = train_view_choice(unlabelled, settings.unlabelled_views)
     supersample = default_supersample(data.width, data.height, settings.supersample)
 
-    def render_view(index, **render_options):
-        """The render of view `index` and its captured image (float64 in [0, 1])."""
+    def render_view(index, training=False, **render_options):
+        """The render of view `index` and its captured image (float64 in [0, 1]); a `training` view
+        through its camera as the field refined it (train.camera_refinement)."""
         # the views' own frame: a field trained on other labels of the same capture has another
         pose_world = world_from_scene_pose(data.world_from_scene, data.poses_scene[index].numpy())
+        if training and hasattr(field, "training_pose"):
+            pose_world = field.training_pose(index, pose_world)
         rendered = field.render(pose_world, data.intrinsics[index].numpy(), data.width, data.height, supersample,
                                 **render_options)
         return rendered, data.images[index].numpy().astype(np.float64) / 255.0
@@ -285,8 +288,8 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
         }
         # the generalization check: the same renders of a few training views (numbers only)
         train_rgb, train_target = [], []
-        for index in train_chosen:
-            rendered, target = render_view(index)
+        for index in train_chosen:  # through the cameras the field was trained with
+            rendered, target = render_view(index, training=True)
             train_rgb.append(rendered["rgb"])
             train_target.append(target)
         train_psnr = pooled_psnr(train_rgb, train_target) if train_rgb else None
@@ -301,7 +304,7 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
             # the same training views with the appearance a new view at their pose gets (the nearest
             # *other* training image's): the part of the gap that is each image's own embedding
             # (exposure, white balance, and whatever else it absorbed), apart from the geometry's
-            borrowed = [render_view(index, exclude_view=int(index))[0]["rgb"] for index in train_chosen]
+            borrowed = [render_view(index, training=True, exclude_view=int(index))[0]["rgb"] for index in train_chosen]
             result["train_view_psnr_borrowed_appearance"] = pooled_psnr(borrowed, train_target)
             result["appearance_gap_db"] = train_psnr - result["train_view_psnr_borrowed_appearance"]
         if significant:

@@ -357,6 +357,13 @@ class TrainSettings(SettingsSection):
     """which rays the empty-background loss empties: unmasked (every pixel no mask marks) or
     backdrop (those that also have the backdrop's colour, so a part the masks miss keeps its
     matter)"""
+    camera_refinement: bool | str = False
+    """true: each training camera's pose is refined while training (Nerfacto's SO3xR3 camera
+    optimizer: a rotation and a translation per image, Adam at camera_lr, an L2 penalty on their
+    size), for poses that COLMAP or structure from motion ..."""
+    camera_lr: float = 0.0006
+    """Adam's learning rate of the camera corrections of camera_refinement (Nerfacto's), decayed
+    with the field's schedule"""
     tv_density: float = 0.0
     """weight of the total-variation loss on the dense density grid (Plenoxels)"""
     tv_features: float = 0.0

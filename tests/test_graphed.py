@@ -79,7 +79,8 @@ def train_steps(scene, device, static: bool, steps: int = 40, **options):
     folder, images, labels = scene
     settings = TrainSettings.from_options(tiny_options(iterations=steps, device=str(device), checkpoint_every=0,
                                                        cuda_graph=static, **options))
-    run = trainer.start_run(images, labels, folder / f"srf-{static}-{options.get('encoding')}.zarr", settings, 5, None)
+    name = f"srf-{static}-{options.get('encoding')}-{options.get('camera_refinement')}.zarr"
+    run = trainer.start_run(images, labels, folder / name, settings, 5, None)
     if static and run.graphed is None:  # the CPU: the same static steps, run eagerly
         assert graph_unavailable(run) == "not on CUDA"
         run.graphed = GraphedSteps(run)
@@ -93,10 +94,12 @@ def train_steps(scene, device, static: bool, steps: int = 40, **options):
     return run, losses
 
 
-@pytest.mark.parametrize("encoding", ["dense", "hash"])
-def test_static_steps_train_as_the_eager_steps_do(scene, device, encoding):
-    _, eager = train_steps(scene, device, static=False, encoding=encoding)
-    run, static = train_steps(scene, device, static=True, encoding=encoding)
+@pytest.mark.parametrize("encoding, refine", [("dense", False), ("hash", False), ("dense", True)])
+def test_static_steps_train_as_the_eager_steps_do(scene, device, encoding, refine):
+    # refine: the cameras' corrections (train.camera_refinement) are part of the recorded step
+    _, eager = train_steps(scene, device, static=False, encoding=encoding, camera_refinement=refine)
+    run, static = train_steps(scene, device, static=True, encoding=encoding, camera_refinement=refine)
+    assert (run.cameras is not None) == refine
     # the same batches (one seeded stream), the same function: the first steps agree to
     # rounding, which grows through the optimizer steps (on CUDA bf16 autocast and atomic adds,
     # which sum in no fixed order, make two eager runs drift apart too) but stays far below what

@@ -49,23 +49,28 @@ class _InterpolatedGather(torch.autograd.Function):
     def forward(ctx, table, index, weights):
         with torch.autocast(table.device.type, enabled=False):
             out = weighted_rows(table, index, weights, fused=table.device.type == "cpu")
-        ctx.save_for_backward(index, weights)
+        ctx.save_for_backward(index, weights, table if ctx.needs_input_grad[2] else None)
         ctx.rows, ctx.dtype = table.shape[0], table.dtype
         return out
 
     @staticmethod
     def backward(ctx, grad_out):
-        index, weights = ctx.saved_tensors
+        index, weights, table = ctx.saved_tensors
         grad_out = grad_out.to(ctx.dtype)
         features = grad_out.shape[1]
         flat = index.reshape(-1)
+        # d out[m] / d weights[m, k] = table[index[m, k]]: only when positions learn (camera refinement)
+        grad_weights = None
+        if ctx.needs_input_grad[2]:
+            rows = table.index_select(0, flat).view(*index.shape, features)
+            grad_weights = (rows * grad_out.unsqueeze(1)).sum(-1)
         if features == 1:
             contributions = (weights.to(ctx.dtype) * grad_out).reshape(-1)
             grad = torch.zeros(ctx.rows, dtype=ctx.dtype, device=grad_out.device)
-            return grad.index_add_(0, flat, contributions).unsqueeze(1), None, None
+            return grad.index_add_(0, flat, contributions).unsqueeze(1), None, grad_weights
         contributions = (grad_out.unsqueeze(1) * weights.to(ctx.dtype).unsqueeze(-1)).reshape(-1, features)
         grad = torch.zeros(ctx.rows, features, dtype=ctx.dtype, device=grad_out.device)
-        return grad.index_add_(0, flat, contributions), None, None
+        return grad.index_add_(0, flat, contributions), None, grad_weights
 
 
 def weighted_rows(table: torch.Tensor, index: torch.Tensor, weights: torch.Tensor, fused: bool) -> torch.Tensor:
@@ -88,9 +93,11 @@ def weighted_rows(table: torch.Tensor, index: torch.Tensor, weights: torch.Tenso
 def interpolated_gather(table: torch.Tensor, index: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     """sum_k weights[m, k] * table[index[m, k]] for a channels-last table (N, F): (M, K) -> (M, F).
 
-    The weights depend only on sample positions, which are never optimised (no gradient).
+    The weights depend only on sample positions, which learn only when the rays do (camera
+    refinement): otherwise they are detached, and the backward skips their gradient (a second
+    gather of every corner row).
     """
-    return _InterpolatedGather.apply(table, index, weights.detach().float())
+    return _InterpolatedGather.apply(table, index, weights.float())
 
 
 def _axis_weights(frac: torch.Tensor) -> torch.Tensor:

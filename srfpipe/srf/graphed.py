@@ -198,11 +198,13 @@ class GraphedSteps:
 
         run, model = self.run, self.run.model
         origins, directions, rgb, labels = pixel_batch(self.data, self.image, self.v, self.u)
+        if run.cameras is not None:
+            origins, directions = run.cameras(self.image, origins, directions)
         valid = None if run.labelled_frames is None else run.labelled_frames[self.image]
         with self.autocast if self.autocast is not None else run.autocast:
             outputs = model(origins, directions, self.image, self.jitter,
                             box_accumulation=bool(run.settings.background_opacity))
-        terms = loss_terms(run.settings, model, outputs, rgb, labels, valid, None, run.backdrop)
+        terms = loss_terms(run.settings, model, outputs, rgb, labels, valid, None, run.backdrop, run.cameras)
         loss = sum_terms(terms)
         loss.backward()
         run.optimizer.step()

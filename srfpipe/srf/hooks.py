@@ -314,6 +314,7 @@ class Checkpoints(Hook):
                 "step": run.step, "fingerprint": run.fingerprint, "model": run.model.state_dict(),
                 "optimizer": run.optimizer.state_dict(), "train_seconds": run.seconds,
                 "curve": run.curve, "eval_curve": run.eval_curve,
+                **({"cameras": run.cameras.state_dict()} if run.cameras is not None else {}),
             })
         return False
 

@@ -24,8 +24,9 @@ OPTIONAL_WEIGHTS = ("occupancy.seen0", "occupancy.seen1")
 
 
 def write_srf(path, model, *, config: dict, inputs: list, curve: dict, eval_curve: dict | None = None,
-              **attrs) -> None:
-    """Write a trained `SRFModel` and its metadata atomically to `path`."""
+              camera_adjustment: np.ndarray | None = None, **attrs) -> None:
+    """Write a trained `SRFModel` and its metadata atomically to `path`; `camera_adjustment`: the
+    (N, 6) pose corrections of train.camera_refinement (srf.camera_refinement), as cameras/adjustment."""
     state = model.state_dict()
     with create_artifact(path, stage="train", config=config, inputs=inputs, format=FORMAT,
                          model_config=model.config, **attrs) as group:
@@ -40,6 +41,10 @@ def write_srf(path, model, *, config: dict, inputs: list, curve: dict, eval_curv
             for key, values in series.items():
                 values = np.asarray(values, dtype=np.float64)
                 sub.create_array(key, shape=values.shape, dtype=np.float64)[...] = values
+        if camera_adjustment is not None:
+            adjustment = np.asarray(camera_adjustment, dtype=np.float64)
+            group.create_group("cameras").create_array("adjustment", shape=adjustment.shape,
+                                                       dtype=np.float64)[...] = adjustment
 
 
 # Model-config keys that srf.zarr files written before them lack, with what the model did then
@@ -80,6 +85,17 @@ def read_srf(path, device="cpu"):
         loaded[key] = torch.from_numpy(array).to(tensor.dtype)
     model.load_state_dict(loaded)
     return model.to(device).eval(), attrs
+
+
+def read_camera_adjustment(path) -> np.ndarray | None:
+    """The (N, 6) pose corrections a run with train.camera_refinement learned (None without)."""
+    group = open_artifact(path, stage="train")
+    if "cameras" not in group or "adjustment" not in group["cameras"]:
+        return None
+    adjustment = np.asarray(group["cameras"]["adjustment"][...], dtype=np.float64)
+    if adjustment.ndim != 2 or adjustment.shape[1] != 6 or not np.all(np.isfinite(adjustment)):
+        raise ValueError(f"{path}: cameras/adjustment must be finite (N, 6) pose corrections, got {adjustment.shape}")
+    return adjustment
 
 
 def read_curve(path, name: str = "curve") -> dict[str, np.ndarray]:

@@ -73,6 +73,25 @@ class SemanticRadianceField:
         p = points_world @ self.scene_from_world[:3, :3].T + self.scene_from_world[:3, 3]
         return torch.as_tensor(p, dtype=torch.float32, device=self.device)
 
+    @property
+    def camera_adjustment(self):
+        """The (N, 6) pose corrections of train.camera_refinement, or None (srf.zarr cameras/adjustment)."""
+        if not hasattr(self, "_camera_adjustment"):
+            from srfpipe.srf.io import read_camera_adjustment
+
+            self._camera_adjustment = None if self.path is None else read_camera_adjustment(self.path)
+        return self._camera_adjustment
+
+    def training_pose(self, index: int, camera_to_world) -> np.ndarray:
+        """Training image `index`'s pose as the field learned it: `camera_to_world` with the
+        correction of train.camera_refinement (unchanged without one)."""
+        from srfpipe.srf.camera_refinement import refined_world_pose
+
+        adjustment = self.camera_adjustment
+        if adjustment is None:
+            return np.asarray(camera_to_world, dtype=np.float64)
+        return refined_world_pose(camera_to_world, adjustment[int(index)], self.scale)
+
     # ------------------------------------------------------------------ queries
 
     @property

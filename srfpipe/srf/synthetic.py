@@ -63,8 +63,12 @@ def render(origins, directions):
 
 
 def write_scene(folder, views: int = 16, width: int = 48, height: int = 36, radius: float = 2.2,
-                heights=(0.4, 1.2), fov_deg: float = 50.0) -> tuple[Path, Path]:
-    """Render the scene from rings of cameras; write folder/images.zarr and folder/labels.zarr."""
+                heights=(0.4, 1.2), fov_deg: float = 50.0, pose_errors: dict | None = None) -> tuple[Path, Path]:
+    """Render the scene from rings of cameras; write folder/images.zarr and folder/labels.zarr.
+
+    `pose_errors` {view: (3,) axis-angle in radians}: those views are rendered from their true
+    camera but recorded turned by that rotation in their camera frame, as a calibration that got
+    them wrong (for camera refinement); `pose_errors` is recorded in images.zarr."""
     folder = Path(folder)
     bounds = np.array([[-0.6, -0.6, 0.0], [0.6, 0.6, 0.9]])
     scene_from_world = scene_from_world_transform(*bounds)
@@ -78,6 +82,9 @@ def write_scene(folder, views: int = 16, width: int = 48, height: int = 36, radi
         origins, directions = pixel_rays(pose, intrinsics, width, height)
         rgb, label, depth = render(origins, directions)
         z_depth = depth * (directions @ pose[:3, 2])
+        if pose_errors and i in pose_errors:
+            pose = pose.copy()
+            pose[:3, :3] = pose[:3, :3] @ _rotation(np.asarray(pose_errors[i], dtype=np.float64))
         poses.append(pose)
         images.append(np.clip(np.round(rgb * 255), 0, 255).astype(np.uint8))
         labels.append(label)
@@ -87,7 +94,8 @@ def write_scene(folder, views: int = 16, width: int = 48, height: int = 36, radi
     images_path = folder / "images.zarr"
     with create_artifact(images_path, "downscale", names=names, width=width, height=height, downscale=1,
                          scene_from_world=scene_from_world, world_from_scene=np.linalg.inv(scene_from_world),
-                         bounds_world=bounds, ground_truth="synthetic") as g:
+                         bounds_world=bounds, ground_truth="synthetic",
+                         pose_errors={int(k): list(map(float, v)) for k, v in (pose_errors or {}).items()}) as g:
         g.create_array("images", shape=images.shape, chunks=(1, height, width, 3), dtype=np.uint8)[...] = images
         g.create_array("intrinsics", shape=(views, 4), dtype=np.float64)[...] = np.tile(intrinsics, (views, 1))
         g.create_array("camera_to_world", shape=poses.shape, dtype=np.float64)[...] = poses
@@ -96,6 +104,16 @@ def write_scene(folder, views: int = 16, width: int = 48, height: int = 36, radi
         gt.create_array("depth", shape=labels.shape, chunks=(1, height, width), dtype=np.float32)[...] = np.stack(depths)
     labels_path = write_labels(folder / "labels.zarr", labels, CLASSES, names, inputs=[images_path])
     return images_path, labels_path
+
+
+def _rotation(axis_angle: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula for one axis-angle vector (radians)."""
+    angle = float(np.linalg.norm(axis_angle))
+    if angle == 0.0:
+        return np.eye(3)
+    x, y, z = axis_angle / angle
+    k = np.array([[0, -z, y], [z, 0, -x], [-y, x, 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)
 
 
 def write_labels(path, label: np.ndarray, classes: list[str], names: list[str], inputs=()) -> Path:

@@ -96,10 +96,12 @@ def training_progress(step: int, iterations: int, seconds: float, time_budget: f
     return progress
 
 
-def parameter_groups(model, grid_lr_scale: float) -> list[dict]:
+def parameter_groups(model, grid_lr_scale: float, cameras=None, lr: float = 1e-2,
+                     camera_lr: float = 6e-4) -> list[dict]:
     """Adam groups: dense grid tables learn `grid_lr_scale` times faster (DVGO uses 1e-1 for its
     grids): one Adam step moves a grid value by at most ~lr, and a cell of fog has to fall by
-    several units of log-density before the occupancy grid can skip it."""
+    several units of log-density before the occupancy grid can skip it. The camera corrections
+    (`cameras`, a CameraRefinement) learn at `camera_lr` when the field learns at `lr`, on its schedule."""
     import torch
 
     grids = [m.table for m in model.modules() if type(m).__name__ == "DenseGrid"]
@@ -108,6 +110,8 @@ def parameter_groups(model, grid_lr_scale: float) -> list[dict]:
     groups = [{"params": others, "lr_scale": 1.0}]
     if grids:
         groups.append({"params": grids, "lr_scale": float(grid_lr_scale)})
+    if cameras is not None:
+        groups.append({"params": list(cameras.parameters()), "lr_scale": camera_lr / lr})
     return groups
 
 
@@ -315,6 +319,8 @@ def resolve_data_defaults(settings, data):
     the box, so opacity there is penalised; otherwise (the orchard's ground, a room) the box holds
     things the classes do not name, so it is off.
     background_rays: which of those rays (see `background_rays`).
+    camera_refinement: a real capture's poses were estimated (COLMAP, structure from motion) and
+    are refined while training; a generated capture's are exact.
     appearance_dim: a real capture's images differ in exposure and white balance, which a
     per-image embedding absorbs (Nerfacto, NeRF-W); a generated capture (it has ground truth)
     has none, and the embedding would only add parameters.
@@ -334,6 +340,10 @@ def resolve_data_defaults(settings, data):
                  "empty" if data.background_empty else "a scene")
     if settings.background_rays == "auto":
         changes["background_rays"] = background_rays(data) if data.background_empty else "unmasked"
+    if settings.camera_refinement == "auto":
+        changes["camera_refinement"] = data.gt_label is None
+        log.info("camera_refinement %s (%s capture)", changes["camera_refinement"],
+                 "generated" if data.gt_label is not None else "real")
     if settings.appearance_dim is None:
         changes["appearance_dim"] = 0 if data.gt_label is not None else REAL_CAPTURE_APPEARANCE_DIM
         log.info("appearance_dim %d (%s capture)", changes["appearance_dim"],
@@ -397,6 +407,7 @@ class TrainingRun:
     outputs: dict = field(default_factory=dict)  # the last step's render outputs
     graphed: Any = None  # srf.graphed.GraphedSteps when the step is replayed as a CUDA graph
     backdrop: Any = None  # (colour (3,) in [0, 1] on the device, level in 8-bit levels): data.backdrop
+    cameras: Any = None  # srf.camera_refinement.CameraRefinement when train.camera_refinement is on
 
 
 CURVE_KEYS = ("step", "seconds", "loss", "photometric", "semantic", "psnr", "samples_per_ray", "shaded_per_ray",
@@ -465,10 +476,12 @@ def training_step(run: TrainingRun, step: int):
         origins, directions, image, rgb, labels = sample_batch(run.data, run.train_views, s.rays_per_batch, generator,
                                                                run.device, run.focus, s.object_rays)
         jitter = rand(s.rays_per_batch, generator, run.device)
+    if run.cameras is not None:  # outside autocast: rays in full precision
+        origins, directions = run.cameras(image, origins, directions)
     with run.autocast:
         outputs = model(origins, directions, image, jitter, box_accumulation=bool(s.background_opacity))
     valid = None if run.labelled_frames is None else run.labelled_frames[image]
-    terms = loss_terms(s, model, outputs, rgb, labels, valid, generator, run.backdrop)
+    terms = loss_terms(s, model, outputs, rgb, labels, valid, generator, run.backdrop, run.cameras)
     loss = sum_terms(terms)
     run.watch.update(terms, loss)
     run.optimizer.zero_grad(set_to_none=True)
@@ -482,11 +495,12 @@ def training_step(run: TrainingRun, step: int):
     return terms, loss, outputs
 
 
-def loss_terms(s: TrainSettings, model, outputs: dict, rgb, labels, valid, generator, backdrop=None) -> dict:
+def loss_terms(s: TrainSettings, model, outputs: dict, rgb, labels, valid, generator, backdrop=None,
+               cameras=None) -> dict:
     """The step's loss terms, each times its weight from the settings, by name: L_photo (Eq. 5),
     lambda L_sem (Eq. 4, on the frames that had masks), and the regularisers the settings switch
     on (mip-NeRF 360's distortion, the empty-background opacity on the rays whose pixel shows
-    the `backdrop` (colour, level), Plenoxels' total variation)."""
+    the `backdrop` (colour, level), Plenoxels' total variation, the size of the `cameras`' corrections)."""
     from srfpipe.srf import losses
 
     terms = {"photometric": losses.photometric_loss(outputs["rgb"], rgb),
@@ -501,6 +515,8 @@ def loss_terms(s: TrainSettings, model, outputs: dict, rgb, labels, valid, gener
         terms["tv_density"] = s.tv_density * losses.grid_total_variation(model.field.inner_sigma, s.tv_samples, generator)
     if s.tv_features and model.field.density_grid:
         terms["tv_features"] = s.tv_features * losses.grid_total_variation(model.field.inner, s.tv_samples, generator)
+    if cameras is not None:
+        terms["camera_penalty"] = cameras.penalty()
     return terms
 
 
@@ -545,7 +561,13 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
         seen_fraction = model.occupancy.mark_seen(data.poses_scene[train_views], data.intrinsics[train_views],
                                                   data.width, data.height)
         log.info("cells a training camera sees: %s", ", ".join(f"{k} {v:.1%}" for k, v in seen_fraction.items()))
-    optimizer = torch.optim.Adam(parameter_groups(model, settings.grid_lr_scale), lr=settings.lr, eps=1e-15,
+    cameras = None
+    if settings.camera_refinement is True:
+        from srfpipe.srf.camera_refinement import CameraRefinement
+
+        cameras = CameraRefinement(data.poses_scene.to(device))
+    optimizer = torch.optim.Adam(parameter_groups(model, settings.grid_lr_scale, cameras, settings.lr, settings.camera_lr),
+                                 lr=settings.lr, eps=1e-15,
                                  fused=device.type in ("cpu", "cuda"))
     autocast, precision = autocast_context(device, settings.precision)
     scaler = torch.amp.GradScaler("cuda") if precision == "fp16" and device.type == "cuda" else None
@@ -553,7 +575,7 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
     fp = fingerprint(settings.as_dict(), config, inputs + [{"holdout_every": holdout_every}])
     ckpt_dir = Path(checkpoints) if checkpoints else out.with_name(out.name.removesuffix(".zarr") + ".ckpt")
     run = TrainingRun(settings, data, holdout_every, train_views, heldout_views, device, model, optimizer, scaler, autocast, precision,
-                      fp, ckpt_dir, out, focus, labelled_frames, seen_fraction, watch=None)
+                      fp, ckpt_dir, out, focus, labelled_frames, seen_fraction, watch=None, cameras=cameras)
     if settings.background_opacity and settings.background_rays == "backdrop":
         if data.backdrop is None:
             log.warning("background_rays backdrop: %s records no backdrop colour (labels.zarr of an older "
@@ -564,6 +586,8 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
     state = latest_checkpoint(ckpt_dir, fp)
     if state is not None:
         model.load_state_dict(state["model"])
+        if cameras is not None:
+            cameras.load_state_dict(state["cameras"])
         optimizer.load_state_dict(state["optimizer"])
         for group in optimizer.param_groups:  # a CUDA graph's run saved its device-side settings
             group["lr"], group["capturable"] = float(group["lr"]), False
@@ -586,6 +610,21 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
     return run
 
 
+def camera_record(run: TrainingRun) -> dict:
+    """What srf.zarr records of the refined cameras: each image's correction (the training
+    views' are what the training views were rendered through) and their size, logged."""
+    if run.cameras is None:
+        return {}
+    from srfpipe.srf.model import scene_scale
+
+    summary = run.cameras.summary(run.train_views, scene_scale(run.data.scene_from_world))
+    log.info("cameras refined: rotation %.3g deg median (%.3g largest), translation %.3g world units median "
+             "(%.3g largest) over %d training images", summary["rotation_deg_median"], summary["rotation_deg_max"],
+             summary["translation_world_median"], summary["translation_world_max"], summary["images"])
+    return {"camera_adjustment": run.cameras.adjustment.detach().cpu().double().numpy(),
+            "camera_refinement": summary}
+
+
 def write_field(run: TrainingRun, images, labels) -> None:
     """srf.zarr from the trained run, then the run's checkpoints removed (snapshots stay)."""
     from srfpipe.srf import io
@@ -602,7 +641,7 @@ def write_field(run: TrainingRun, images, labels) -> None:
         train_views=run.train_views, heldout_views=run.heldout_views, train_seconds=run.seconds,
         precision=run.precision, device=str(run.device), fingerprint=run.fingerprint, iterations_done=run.step,
         resumed_from_step=run.resumed_from, final=({k: curve[k][-1] for k in curve} if curve["step"] else {}),
-        seen_fraction=run.seen_fraction,
+        seen_fraction=run.seen_fraction, **camera_record(run),
     )
     if not run.settings.keep_checkpoints and run.checkpoint_dir.is_dir():
         for path in run.checkpoint_dir.glob("step-*.pt"):
