@@ -83,8 +83,10 @@ def write_scene(folder, views: int = 16, width: int = 48, height: int = 36, radi
         rgb, label, depth = render(origins, directions)
         z_depth = depth * (directions @ pose[:3, 2])
         if pose_errors and i in pose_errors:
+            import cv2
+
             pose = pose.copy()
-            pose[:3, :3] = pose[:3, :3] @ _rotation(np.asarray(pose_errors[i], dtype=np.float64))
+            pose[:3, :3] = pose[:3, :3] @ cv2.Rodrigues(np.asarray(pose_errors[i], dtype=np.float64))[0]
         poses.append(pose)
         images.append(np.clip(np.round(rgb * 255), 0, 255).astype(np.uint8))
         labels.append(label)
@@ -104,16 +106,6 @@ def write_scene(folder, views: int = 16, width: int = 48, height: int = 36, radi
         gt.create_array("depth", shape=labels.shape, chunks=(1, height, width), dtype=np.float32)[...] = np.stack(depths)
     labels_path = write_labels(folder / "labels.zarr", labels, CLASSES, names, inputs=[images_path])
     return images_path, labels_path
-
-
-def _rotation(axis_angle: np.ndarray) -> np.ndarray:
-    """Rodrigues' formula for one axis-angle vector (radians)."""
-    angle = float(np.linalg.norm(axis_angle))
-    if angle == 0.0:
-        return np.eye(3)
-    x, y, z = axis_angle / angle
-    k = np.array([[0, -z, y], [z, 0, -x], [-y, x, 0]])
-    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)
 
 
 def write_labels(path, label: np.ndarray, classes: list[str], names: list[str], inputs=()) -> Path:
