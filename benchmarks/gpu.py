@@ -12,7 +12,9 @@ Snakemake workflow with the shipped scene file (captures.py's configuration: the
 3. `preset: paper` (the hash grid, 500k iterations): its steps/s over a short run and the hours
    its 500k iterations would take at that rate;
 4. `profile` (`--profile-steps`, 300 by default on CUDA): torch.profiler over that many orchard steps, the
-   operations and kernels that take the most time a step, and the host's waits and copies a step.
+   operations and kernels that take the most time a step, and the host's waits and copies a step;
+5. `interpolation_ms` (`--kernel-repeats`, 20 by default on CUDA): one forward and backward of each way to
+   read the grids (`embedding_bag`, `grid_sample`, the gather) at the orchard's and the paper preset's sizes.
 
 `orchard_seconds_to_28_5_db` is the first budget whose held-out PSNR reaches 28.5 dB, linearly
 interpolated between budgets (null when none does).
@@ -213,6 +215,65 @@ def profile_training(workdir: Path, steps: int) -> dict:
             "host_copies_per_step": calls.get("cudaMemcpyAsync", 0) / steps}
 
 
+def interpolation_timings(repeats: int, rays: int = 4096, samples: int = 32) -> dict:
+    """Milliseconds of one forward and backward of each way to read the grids, on the device torch picks, at
+    `samples` points along each of `rays` rays (as a training batch has them: a ray's points share cells, so
+    the backward's atomic adds collide; uniformly random points would hide that). The dense grids of the
+    orchard's default field (96^3 x 16 colour features and 96^3 x 1 log-density): the corner sum by
+    `embedding_bag`, by `grid_sample` with the corner sum's backward (`index_add_`; srfpipe's path on CUDA), and
+    by `grid_sample` with its own backward; the paper preset's hash grid (16 levels x 2 features, 2^19 rows a
+    level): its forward by the row gather and batched product and by `embedding_bag`, and a whole pass."""
+    import time
+
+    import torch
+
+    from srfpipe.device import choose_device
+    from srfpipe.srf import encodings
+
+    device = choose_device("auto")
+    generator = torch.Generator().manual_seed(0)
+
+    def timed(function) -> float:
+        for _ in range(3):
+            function()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        start = time.perf_counter()
+        for _ in range(repeats):
+            function()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        return (time.perf_counter() - start) / repeats * 1000.0
+
+    # rays from a sphere of radius 0.9 towards points near the centre, sampled a cell apart (1/48 of [-1, 1])
+    start = torch.nn.functional.normalize(torch.randn(rays, 3, generator=generator), dim=-1) * 0.9
+    target = (torch.rand(rays, 3, generator=generator) - 0.5) * 0.6
+    direction = torch.nn.functional.normalize(target - start, dim=-1)
+    t = 0.6 + torch.arange(samples) / 48.0
+    u = (start[:, None, :] + t[None, :, None] * direction[:, None, :]).reshape(-1, 3).clamp(-1, 1).to(device)
+    result: dict = {"device": device_name(), "rays": rays, "samples_per_ray": samples, "repeats": repeats}
+    for features in (16, 1):
+        grid = encodings.DenseGrid((96, 96, 96), features).to(device)
+        pos = (u + 1.0) * 0.5 * (grid._res - 1.0)
+        origin = torch.minimum(pos.floor(), grid._res - 2.0)
+        index = (origin.long() * grid._strides).sum(-1, keepdim=True) + grid._corner_offsets
+        weights = encodings._axis_weights(pos - origin)
+        volume = (grid.resolution, u)
+        result[f"dense_96_f{features}"] = {
+            "embedding_bag": timed(lambda: encodings.interpolated_gather(grid.table, index, weights).sum().backward()),
+            "grid_sample_forward": timed(
+                lambda: encodings.interpolated_gather(grid.table, index, weights, volume).sum().backward()),
+            "grid_sample": timed(lambda: encodings.sampled_volume(grid.table, grid.resolution, u).sum().backward())}
+    hashed = encodings.HashGrid(levels=16, features_per_level=2, log2_table_size=19).to(device)
+    index = torch.randint(0, hashed.table.shape[0], (u.shape[0] * 16, 8), generator=generator).to(device)
+    weights = torch.rand(u.shape[0] * 16, 8, generator=generator).to(device)
+    result["hash_16x2_forward"] = {
+        "gather": timed(lambda: encodings.weighted_rows(hashed.table, index, weights, fused=False)),
+        "embedding_bag": timed(lambda: encodings.weighted_rows(hashed.table, index, weights, fused=True))}
+    result["hash_16x2"] = {"embedding_bag": timed(lambda: hashed(u).sum().backward())}
+    return result
+
+
 def with_agreement_gap(report: dict) -> dict:
     """`cuda_vs_cpu.heldout_psnr_gap_db`: |CUDA - CPU| held-out PSNR of the agreement run, when both
     ran the same number of steps (the issue's tolerance: 0.5 dB)."""
@@ -248,6 +309,8 @@ def main() -> int:
                         help="steps of the CUDA-against-CPU check on the orchard (0: none)")
     parser.add_argument("--profile-steps", type=int, default=None,
                         help="profile this many orchard training steps (default 300 on CUDA, none on the CPU; 0: none)")
+    parser.add_argument("--kernel-repeats", type=int, default=None,
+                        help="time each way to read the grids over this many passes (default 20 on CUDA, none on the CPU; 0: none)")
     parser.add_argument("--cpu-reference", action="store_true",
                         help="on a CPU machine: train and evaluate the agreement run on the CPU and add it to gpu.json")
     build = parser.add_mutually_exclusive_group()
@@ -284,6 +347,12 @@ def main() -> int:
         check = previous.get("cuda_vs_cpu")
         previous = {"cuda_vs_cpu": {"measured_on": previous.get("device"), **check}} if check else {}
     report: dict = {"device": device_name(), "budgets_seconds": list(budgets), "scenes": {}}
+    repeats = args.kernel_repeats if args.kernel_repeats is not None else (20 if device_name() != "cpu" else 0)
+    if repeats:
+        report["interpolation_ms"] = interpolation_timings(repeats)
+        print(f"reading the grids (ms a forward and backward): {json.dumps(report['interpolation_ms'])}", flush=True)
+    elif previous.get("interpolation_ms"):
+        report["interpolation_ms"] = dict(previous["interpolation_ms"], measured_in_an_earlier_run=True)
     if args.agreement_steps and "orchard" in names and device_name() != "cpu":
         report["cuda_vs_cpu"] = agreement(args.workdir, args.agreement_steps, "cuda")
         print(f"CUDA against the CPU: {json.dumps(report['cuda_vs_cpu'], default=str)}", flush=True)

@@ -54,7 +54,8 @@ run() {
     cp benchmarks/results/gpu.json benchmarks/results/gpu_partial.json "$out"/ 2>/dev/null
     tar czf "$out/logs.tgz" "$lease/work/logs" 2>/dev/null
   }
-  timeout 170 python3 -m pytest -q -p no:cacheprovider tests/test_device.py tests/test_graphed.py 2>&1 |
+  timeout 170 python3 -m pytest -q -p no:cacheprovider tests/test_device.py tests/test_graphed.py \
+    tests/test_field.py 2>&1 |
     tail -40 >"$out/pytest.log"
   tail -3 "$out/pytest.log"
   timeout $(($(left) - 20)) python3 benchmarks/gpu.py --no-build --workdir "$lease/work" --scenes orchard \

@@ -60,12 +60,23 @@ def _size(shape) -> tuple:
 
 
 def _moved(values, device):
-    # non_blocking only towards an accelerator: a copy from host memory is safe to queue, while a
-    # non-blocking copy *to* the CPU may be read before it has landed
+    """`values` on `device`. Towards an accelerator the copy is queued (non_blocking) from page-locked
+    memory: from pageable memory CUDA first waits for everything queued on the stream, a host wait in
+    the middle of each training step. A non-blocking copy *to* the CPU could be read before it lands."""
     import torch
 
     device = torch.device(device)
-    return values.to(device, non_blocking=device.type != "cpu")
+    if device.type == "cpu" or values.device == device:
+        return values.to(device)
+    return page_locked(values, device).to(device, non_blocking=True)
+
+
+def page_locked(values, device):
+    """A CPU tensor bound for CUDA in page-locked (pinned) memory, from which the copy need not wait;
+    any other as it is."""
+    import torch
+
+    return values.pin_memory() if values.device.type == "cpu" and torch.device(device).type == "cuda" else values
 
 
 def rand(shape, generator, device, dtype=None):

@@ -9,7 +9,7 @@ import torch
 from srfpipe.cameras import scene_from_world_transform
 from srfpipe.config import section_defaults
 from srfpipe.srf import losses
-from srfpipe.srf.encodings import DenseGrid, HashGrid, _axis_weights, weighted_rows
+from srfpipe.srf.encodings import DenseGrid, HashGrid, _axis_weights, interpolated_gather, weighted_rows
 from srfpipe.srf.field import contract, spherical_harmonics, uncontract
 from srfpipe.srf.model import SRFModel, build_model_config
 
@@ -83,6 +83,33 @@ def test_dense_grid_gradient_matches_autograd_of_the_same_interpolation(features
     (reference * weights_out).sum().backward()
     assert torch.allclose(grid(u), reference, atol=1e-6)
     assert torch.allclose(grid.table.grad, table.grad, atol=1e-5)
+
+
+@pytest.mark.parametrize("features", [1, 8])
+def test_grid_sample_reads_a_dense_grid_as_the_corner_sum_does(features, device):
+    # CUDA's forward (grid_sample on a strided view of the channels-last table) against the CPU's
+    # corner sum: values, table gradient and position gradient, with points on the box's faces
+    torch.manual_seed(0)
+    grid = DenseGrid((5, 3, 7), features=features)
+    u = torch.rand(400, 3) * 2 - 1
+    u[:40] = u[0]  # repeated cells: their contributions add up
+    u[40:60] = torch.tensor([1.0, -1.0, 1.0])
+    u[60:80, 1] = 1.0
+    u.requires_grad_(True)
+    weights_out = torch.randn(400, features)
+    (grid(u) * weights_out).sum().backward()  # on the CPU: the corner sum
+    grid_device = grid.to(device)
+    table = grid_device.table.detach().clone().requires_grad_(True)
+    u_device = u.detach().to(device).requires_grad_(True)
+    pos = (u_device + 1.0) * 0.5 * (grid_device._res - 1.0)
+    origin = torch.minimum(pos.floor(), grid_device._res - 2.0)
+    index = (origin.long() * grid_device._strides).sum(-1, keepdim=True) + grid_device._corner_offsets
+    sampled = interpolated_gather(table, index, _axis_weights(pos - origin), (grid.resolution, u_device.detach()))
+    (sampled * weights_out.to(device)).sum().backward()
+    assert sampled.shape == (400, features)
+    assert torch.allclose(sampled.detach().cpu(), grid.to("cpu")(u).detach(), atol=1e-5)
+    assert torch.allclose(table.grad.cpu(), grid.table.grad, atol=1e-4)
+    assert torch.allclose(u_device.grad.cpu(), u.grad, atol=1e-3)
 
 
 @pytest.mark.parametrize("features", [1, 16])

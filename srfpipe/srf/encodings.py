@@ -3,10 +3,11 @@
 * `DenseGrid`: one trainable feature table of shape (Rx*Ry*Rz, F), read by trilinear interpolation
   computed by hand (8 corner indices and weights, one `embedding` gather). On the CPU this
   channels-last gather was ~3x faster than `grid_sample` on a (1, F, Rz, Ry, Rx) volume, which
-  parallelises only over its batch dimension. The fast default on CPU.
+  parallelises only over its batch dimension. The fast default on CPU. On CUDA the forward of a
+  grid without a hashed table is `grid_sample` on a strided view of the same table (`sampled_volume`).
 * `HashGrid`: Instant-NGP's multi-resolution hash encoding in plain PyTorch, vectorised over levels
-  (one gather for all levels and corners). The default on CUDA, where `TcnnHashGrid` (tiny-cuda-nn)
-  replaces it when that package can be imported.
+  (one gather for all levels and corners); on CUDA `TcnnHashGrid` (tiny-cuda-nn) replaces it when
+  that package can be imported.
 
 Every encoding has `.output_dim` and `.config()` (a JSON-able dict that rebuilds it through
 `build_encoding`).
@@ -46,9 +47,9 @@ class _InterpolatedGather(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, table, index, weights):
+    def forward(ctx, table, index, weights, volume=None):
         with torch.autocast(table.device.type, enabled=False):
-            out = weighted_rows(table, index, weights, fused=table.device.type == "cpu")
+            out = weighted_rows(table, index, weights) if volume is None else sampled_volume(table, *volume)
         ctx.save_for_backward(index, weights, table if ctx.needs_input_grad[2] else None)
         ctx.rows, ctx.dtype = table.shape[0], table.dtype
         return out
@@ -67,21 +68,21 @@ class _InterpolatedGather(torch.autograd.Function):
         if features == 1:
             contributions = (weights.to(ctx.dtype) * grad_out).reshape(-1)
             grad = torch.zeros(ctx.rows, dtype=ctx.dtype, device=grad_out.device)
-            return grad.index_add_(0, flat, contributions).unsqueeze(1), None, grad_weights
+            return grad.index_add_(0, flat, contributions).unsqueeze(1), None, grad_weights, None
         contributions = (grad_out.unsqueeze(1) * weights.to(ctx.dtype).unsqueeze(-1)).reshape(-1, features)
         grad = torch.zeros(ctx.rows, features, dtype=ctx.dtype, device=grad_out.device)
-        return grad.index_add_(0, flat, contributions), None, grad_weights
+        return grad.index_add_(0, flat, contributions), None, grad_weights, None
 
 
-def weighted_rows(table: torch.Tensor, index: torch.Tensor, weights: torch.Tensor, fused: bool) -> torch.Tensor:
+def weighted_rows(table: torch.Tensor, index: torch.Tensor, weights: torch.Tensor, fused: bool = True) -> torch.Tensor:
     """sum_k weights[m, k] * table[index[m, k]] (M, F), without autograd's bookkeeping.
 
     `fused`: one `embedding_bag` pass that never writes the (M, K, F) corner rows. On 2 CPU cores
     it takes a fifth of the time of the row gather and batched product (20 against 100 ms for
     100 k points into a 96^3 x 16 grid): a 320 x 240 render of the orchard 2.9-3.2 s against
-    3.4-4.0, training steps unchanged (their time is elsewhere). CUDA keeps the gather and `bmm`,
-    the path its CUDA graph was measured with (an H200 profile puts 4.1 of ~9 ms of kernels a step in
-    them: gpu.json `profile_h200`); a fused pass there is for a lease to measure.
+    3.4-4.0. On an H100, for the paper preset's hash grid (2 M rows of 8 corners, 2 features),
+    2.0 against 3.0 ms (gpu.json `interpolation_ms`). The gather (`fused=False`) stays as the
+    reference the tests and that benchmark compare with.
     """
     if fused:
         return torch.nn.functional.embedding_bag(index, table, per_sample_weights=weights.to(table.dtype), mode="sum")
@@ -90,14 +91,36 @@ def weighted_rows(table: torch.Tensor, index: torch.Tensor, weights: torch.Tenso
     return torch.bmm(weights.unsqueeze(1).to(values.dtype), values).squeeze(1)
 
 
-def interpolated_gather(table: torch.Tensor, index: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+def interpolated_gather(table: torch.Tensor, index: torch.Tensor, weights: torch.Tensor, volume=None) -> torch.Tensor:
     """sum_k weights[m, k] * table[index[m, k]] for a channels-last table (N, F): (M, K) -> (M, F).
 
     The weights depend only on sample positions, which learn only when the rays do (camera
     refinement): otherwise they are detached, and the backward skips their gradient (a second
-    gather of every corner row).
+    gather of every corner row). `volume` = (resolution, u): the table is a dense grid of that
+    resolution, and the forward reads it at u by `grid_sample` (see `sampled_volume`); the
+    backward is the same either way.
     """
-    return _InterpolatedGather.apply(table, index, weights.float())
+    return _InterpolatedGather.apply(table, index, weights.float(), volume)
+
+
+def sampled_volume(table: torch.Tensor, resolution: tuple[int, int, int], u: torch.Tensor) -> torch.Tensor:
+    """A dense grid's trilinear interpolation (M, F) at u (M, 3) in [-1, 1] through `grid_sample`,
+    equal to the corner sum (align_corners=True, border padding): the forward of `DenseGrid` on CUDA.
+
+    Why: on CUDA the corner sum wrote the (M, 8, F) corner rows and read them back in tiny batched
+    products, 4.1 of 9.1 ms of kernels a step of the orchard on an H200 (gpu.json `earlier_leases`);
+    grid_sample reads the corners in one kernel (0.23 ms a step on an H100). Only the forward:
+    grid_sample's own backward adds each point's corners one thread at a time, and a ray's samples
+    share cells, so the atomic adds collide (3.4 ms a step on an H100, against 1.7 on an H200 for `index_add_`
+    of the contributions). The table stays channels-last: the volume is a strided view, x the
+    slowest axis (D), z the fastest (W), so the sample points go in as (z, y, x).
+    """
+    rx, ry, rz = resolution
+    features = table.shape[1]
+    volume = table.view(rx, ry, rz, features).permute(3, 0, 1, 2).unsqueeze(0)  # (1, F, Rx, Ry, Rz), no copy
+    grid = u.float().clamp(-1.0, 1.0).flip(-1).view(1, -1, 1, 1, 3)
+    out = torch.nn.functional.grid_sample(volume, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    return out.view(features, -1).t()
 
 
 def _axis_weights(frac: torch.Tensor) -> torch.Tensor:
@@ -156,6 +179,8 @@ class DenseGrid(nn.Module):
         else:
             base = (origin.long() * self._strides).sum(dim=-1)  # (M,)
             index = base.unsqueeze(1) + self._corner_offsets  # (M, 8)
+            if u.device.type == "cuda":  # on the CPU embedding_bag's fused corner sum is the faster forward
+                return interpolated_gather(self.table, index, _axis_weights(frac), (self.resolution, u))
         return interpolated_gather(self.table, index, _axis_weights(frac))
 
 

@@ -103,10 +103,11 @@ class GraphedSteps:
         self.result = None
 
     def step(self, image, v, u, jitter):
-        self.image.copy_(image, non_blocking=True)
-        self.v.copy_(v, non_blocking=True)
-        self.u.copy_(u, non_blocking=True)
-        self.jitter.copy_(jitter, non_blocking=True)
+        from srfpipe.device import page_locked
+
+        for static, drawn in ((self.image, image), (self.v, v), (self.u, u), (self.jitter, jitter)):
+            # page-locked: from pageable memory each copy would wait for the steps queued before it
+            static.copy_(page_locked(drawn, static.device), non_blocking=True)
         if self.warm < WARMUP_STEPS or not self.cuda:
             return self._eager_step()
         if self.graph is None:
