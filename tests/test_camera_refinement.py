@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from srfpipe.srf.camera_refinement import CameraRefinement, adjusted_poses, refined_world_pose, skew, so3_exp
+from srfpipe.srf.camera_refinement import (CameraRefinement, adjusted_poses, gauge_basis, refined_world_pose, skew,
+                                           so3_exp)
 from srfpipe.srf.data import rays_for_pixels
 from srfpipe.srf.encodings import DenseGrid
 
@@ -17,6 +18,46 @@ def test_so3_exp_is_the_matrix_exponential_and_smooth_at_zero():
     start = torch.zeros(3, requires_grad=True)
     so3_exp(start).sum().backward()  # the corrections start at zero: a finite gradient there
     assert torch.isfinite(start.grad).all()
+
+
+def ring_poses(count: int, generator) -> torch.Tensor:
+    poses = torch.eye(4, dtype=torch.float64).repeat(count, 1, 1)
+    poses[:, :3, :3] = so3_exp(torch.randn(count, 3, generator=generator, dtype=torch.float64))
+    poses[:, :3, 3] = 3.0 * torch.randn(count, 3, generator=generator, dtype=torch.float64)
+    return poses
+
+
+def test_moving_all_training_cameras_together_is_not_a_correction():
+    """A turn, shift and scaling of every training camera at once (the refined frame drifting off the
+    given one, in which held-out views are rendered) is what the gauge basis spans, to first order,
+    and what the anchored corrections remove; one camera's own error is kept."""
+    generator = torch.Generator().manual_seed(0)
+    poses = ring_poses(40, generator)
+    train_views = [i for i in range(40) if i % 8 != 3]
+    basis = gauge_basis(poses, train_views).reshape(40, 6, 7)
+    eps = 1e-4
+    omega, tau, s = torch.tensor([0.3, -0.5, 0.8], dtype=torch.float64), torch.tensor([1.0, 0.2, -0.4], dtype=torch.float64), 0.7
+    centroid = poses[train_views, :3, 3].mean(0)
+    turn = so3_exp(eps * omega)
+    moved = poses.clone()  # the similarity applied to every camera
+    moved[:, :3, :3] = turn @ poses[:, :3, :3]
+    moved[:, :3, 3] = centroid + (1 + eps * s) * (turn @ (poses[:, :3, 3] - centroid).T).T + eps * tau
+    motion = eps * (basis @ torch.cat([tau, omega, torch.tensor([s], dtype=torch.float64)]))
+    first_order = adjusted_poses(poses, motion)
+    assert torch.allclose(first_order[train_views], moved[train_views], atol=1e-7)
+    assert torch.count_nonzero(motion[[3, 11]]) == 0  # held-out views are not part of it
+
+    cameras = CameraRefinement(poses.float(), train_views)
+    own_error = torch.zeros(40, 6)
+    own_error[2] = torch.tensor([0.01, -0.02, 0.0, 0.003, 0.0, -0.002])
+    with torch.no_grad():
+        cameras.adjustment.copy_((motion / eps * 0.01).float() + own_error)
+    kept = cameras.corrections().detach()
+    others = torch.ones(40, dtype=torch.bool)
+    others[2] = False
+    assert kept[others].abs().max() < 0.002  # the common motion is gone (its largest entry was ~0.1)
+    assert torch.linalg.norm(kept[2] - own_error[2]) < 0.25 * torch.linalg.norm(own_error[2])
+    assert torch.allclose(kept[[3, 11]], torch.zeros(2, 6))
 
 
 def test_refined_rays_are_the_rays_of_the_refined_poses():

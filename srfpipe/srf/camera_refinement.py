@@ -11,6 +11,12 @@ take up what is the camera's. An L2 penalty on their size (Nerfacto's weights) i
 to what the images ask for. Held-out views are rendered from their given poses, so a refined frame
 that drifts off them costs held-out quality: on the bottle, corrections of 0.25 deg median cost 1.7 dB
 (docs/benchmarks.md, captures), which is why the option is off by default.
+
+The drift is a gauge freedom: moving, turning or scaling every training camera together (with the
+field) changes no training ray's colour, so nothing but the penalty holds it. The corrections the rays
+see are therefore the learned ones less their component along the 7 similarity motions of the training
+cameras as a whole (`gauge_basis`): an orthogonal projection, fixed by the given poses, so the refined
+cameras keep the given frame, in which the held-out views are rendered, on average.
 """
 
 from __future__ import annotations
@@ -68,17 +74,60 @@ def refined_world_pose(camera_to_world, adjustment, scene_scale: float):
     return np.asarray(camera_to_world, dtype=np.float64) @ correction
 
 
-class CameraRefinement(nn.Module):
-    """The per-image corrections of one training run, applied to the rays of a batch."""
+def gauge_basis(poses: torch.Tensor, views) -> torch.Tensor:
+    """(N * 6, 7): the corrections (t, w) of each image (rows in image order, zero outside `views`) that
+    move the cameras `views` together by a similarity: a shift along each scene axis, a turn about
+    each axis through the cameras' centroid, and a scaling about it. For camera i (rotation R_i,
+    centre C_i, r_i = C_i - centroid), a world turn omega gives w_i = R_i^T omega, t_i = R_i^T (omega x r_i),
+    a shift tau gives t_i = R_i^T tau, a scaling s gives t_i = s R_i^T r_i (to first order)."""
+    poses = poses.double()
+    rotation_t = poses[:, :3, :3].transpose(1, 2)  # R_i^T
+    views = torch.as_tensor(views, dtype=torch.long)
+    offsets = poses[:, :3, 3] - poses[views, :3, 3].mean(0)
+    basis = torch.zeros(poses.shape[0], 6, 7, dtype=torch.float64)
+    eye = torch.eye(3, dtype=torch.float64)
+    for k in range(3):
+        basis[:, :3, k] = rotation_t @ eye[k]
+        basis[:, 3:, 3 + k] = rotation_t @ eye[k]
+        basis[:, :3, 3 + k] = torch.einsum("nij,nj->ni", rotation_t, torch.linalg.cross(eye[k].expand_as(offsets), offsets))
+    basis[:, :3, 6] = torch.einsum("nij,nj->ni", rotation_t, offsets)
+    outside = torch.ones(poses.shape[0], dtype=torch.bool)
+    outside[views] = False
+    basis[outside] = 0.0
+    return basis.reshape(-1, 7)
 
-    def __init__(self, poses_scene: torch.Tensor):
+
+class CameraRefinement(nn.Module):
+    """The per-image corrections of one training run, applied to the rays of a batch. With
+    `train_views`, the corrections of those views are kept free of a motion of them all (see
+    `gauge_basis`); without, they are used as learned."""
+
+    def __init__(self, poses_scene: torch.Tensor, train_views=None):
         super().__init__()
         self.register_buffer("rotation", poses_scene[:, :3, :3].float().clone(), persistent=False)
         self.adjustment = nn.Parameter(torch.zeros(poses_scene.shape[0], 6, device=poses_scene.device))
+        self.anchored = train_views is not None and len(train_views) >= 3
+        if self.anchored:
+            basis = gauge_basis(poses_scene.detach().cpu(), train_views)
+            # the projection's two factors: corrections - basis @ (pseudo-inverse @ corrections). The
+            # pseudo-inverse is exactly zero on the other views' entries: a rounding-sized gradient
+            # there would become a full step under Adam, which normalises gradients
+            rows = basis.abs().sum(1) > 0
+            solve = torch.zeros(7, basis.shape[0], dtype=basis.dtype)
+            solve[:, rows] = torch.linalg.pinv(basis[rows])
+            self.register_buffer("_basis", basis.float().to(poses_scene.device), persistent=False)
+            self.register_buffer("_solve", solve.float().to(poses_scene.device), persistent=False)
+
+    def corrections(self) -> torch.Tensor:
+        """(N, 6) corrections (t, w) the rays see: the learned ones less their common similarity motion."""
+        if not self.anchored:
+            return self.adjustment
+        flat = self.adjustment.reshape(-1)
+        return (flat - self._basis @ (self._solve @ flat)).reshape(self.adjustment.shape)
 
     def forward(self, image: torch.Tensor, origins: torch.Tensor, directions: torch.Tensor):
         """The rays (origins, unit directions) of pixels of images `image`, through the refined cameras."""
-        delta = self.adjustment[image]
+        delta = self.corrections()[image]
         rotation = self.rotation[image]
         turn = rotation @ so3_exp(delta[:, 3:]) @ rotation.transpose(1, 2)
         directions = torch.einsum("rij,rj->ri", turn, directions)
@@ -99,7 +148,7 @@ class CameraRefinement(nn.Module):
         import math
 
         with torch.no_grad():
-            delta = self.adjustment[torch.as_tensor(images, device=self.adjustment.device)].double().cpu()
+            delta = self.corrections()[torch.as_tensor(images, device=self.adjustment.device)].double().cpu()
             degrees = delta[:, 3:].norm(dim=-1) * 180.0 / math.pi
             world = delta[:, :3].norm(dim=-1) / scene_scale
         return {"images": int(delta.shape[0]),

@@ -565,7 +565,7 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
     if settings.camera_refinement is True:
         from srfpipe.srf.camera_refinement import CameraRefinement
 
-        cameras = CameraRefinement(data.poses_scene.to(device))
+        cameras = CameraRefinement(data.poses_scene.to(device), train_views)
     optimizer = torch.optim.Adam(parameter_groups(model, settings.grid_lr_scale, cameras, settings.lr, settings.camera_lr),
                                  lr=settings.lr, eps=1e-15,
                                  fused=device.type in ("cpu", "cuda"))
@@ -621,7 +621,7 @@ def camera_record(run: TrainingRun) -> dict:
     log.info("cameras refined: rotation %.3g deg median (%.3g largest), translation %.3g world units median "
              "(%.3g largest) over %d training images", summary["rotation_deg_median"], summary["rotation_deg_max"],
              summary["translation_world_median"], summary["translation_world_max"], summary["images"])
-    return {"camera_adjustment": run.cameras.adjustment.detach().cpu().double().numpy(),
+    return {"camera_adjustment": run.cameras.corrections().detach().cpu().double().numpy(),
             "camera_refinement": summary}
 
 
