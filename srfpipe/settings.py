@@ -360,7 +360,7 @@ class TrainSettings(SettingsSection):
     camera_refinement: bool | str = False
     """true: each training camera's pose is refined while training (Nerfacto's SO3xR3 camera
     optimizer: a rotation and a translation per image, Adam at camera_lr, an L2 penalty on their
-    size), for poses that COLMAP or structure from motion ..."""
+    size; their common motion removed, so the cameras keep the ..."""
     camera_lr: float = 0.0006
     """Adam's learning rate of the camera corrections of camera_refinement (Nerfacto's), decayed
     with the field's schedule"""
