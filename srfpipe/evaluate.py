@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from srfpipe import cameras
+from srfpipe.srf.trainer import SURROUNDING_SCENE_DISTORTION
 
 log = logging.getLogger("srfpipe.evaluate")
 
@@ -151,10 +152,9 @@ def default_supersample(width: int, height: int, asked: int | None) -> int:
 # (the views it was fitted to look right, a new viewpoint does not): issue 30's threshold.
 GENERALIZATION_GAP_DB = 6.0
 # What narrowed such a gap where the cameras stand round the subject in a scene (docs/benchmarks.md,
-# captures): mip-NeRF 360's distortion loss at this weight. Advice, not a default: it cost the
-# forward-facing fern 0.4 dB, the orchard video (whose box holds far ground; it does not overfit)
-# 0.8 dB and the small plant on an empty backdrop 5.5 dB.
-DISTORTION_REMEDY = 0.01
+# captures): mip-NeRF 360's distortion loss, the default there (train.distortion null); advice for
+# a field trained with it switched off.
+DISTORTION_REMEDY = SURROUNDING_SCENE_DISTORTION
 
 
 def overfit_remedy(train_config: dict, poses_scene, background_empty: bool) -> str | None:

@@ -145,7 +145,7 @@ class PosesSettings(SettingsSection):
     """seed of the perturbations (perturb_rot_deg, perturb_trans_frac)"""
     bounds: tuple | None = None
     """[[xmin, ymin, zmin], [xmax, ymax, zmax]] in world units"""
-    points_box: str = 'all'
+    points_box: str = 'near_cameras'
     """the box estimated from sparse points (when bounds are null and the capture has no ground
     truth): all = their 1-99 % percentiles plus 5 %"""
 
@@ -343,7 +343,7 @@ class TrainSettings(SettingsSection):
     """how the per-image appearance acts: latent (an input of the colour MLP, as NeRF-W and
     Nerfacto) or affine (a colour matrix and offset applied to each image's rendered pixels:
     exposure and white balance, and nothing a single view shows)"""
-    distortion: float = 0.0
+    distortion: float | None = None
     """weight of mip-NeRF 360's distortion loss, which pulls each ray's weight into one short
     interval (against fog and floaters)"""
     object_rays: float = 0.1

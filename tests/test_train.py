@@ -295,6 +295,28 @@ def test_appearance_is_on_by_default_for_real_captures_only():
     assert resolve_data_defaults({"initial_opacity": 0.05}, real).initial_opacity == 0.05
 
 
+def test_distortion_loss_by_default_only_round_a_subject_in_a_scene():
+    """train.distortion null: mip-NeRF 360's distortion loss where the cameras stand round their
+    subject in a scene (every such panel capture gained), not for a forward-facing capture (the fern
+    lost) or an empty backdrop (the small plant lost 5.5 dB); a weight given is kept."""
+    from srfpipe.cameras import look_at
+    from srfpipe.srf.trainer import SURROUNDING_SCENE_DISTORTION, resolve_data_defaults
+
+    def looking_at_origin(angles_deg):
+        data = camera_ring_data(100.0, n=len(angles_deg))
+        data.poses_scene = torch.as_tensor(np.stack([look_at(3.0 * np.array([np.cos(a), np.sin(a), 0.5]), np.zeros(3))
+                                                     for a in np.radians(angles_deg)]), dtype=torch.float32)
+        return data
+
+    orbit, facing = looking_at_origin(np.arange(0, 360, 30)), looking_at_origin(np.linspace(0, 20, 12))
+    assert SURROUNDING_SCENE_DISTORTION > 0
+    assert resolve_data_defaults({"distortion": None}, orbit).distortion == SURROUNDING_SCENE_DISTORTION
+    assert resolve_data_defaults({"distortion": None}, facing).distortion == 0.0
+    assert resolve_data_defaults({"distortion": 0.002}, orbit).distortion == 0.002
+    orbit.background_empty = True
+    assert resolve_data_defaults({"distortion": None}, orbit).distortion == 0.0
+
+
 def test_background_penalty_only_where_the_capture_says_its_background_is_empty():
     """Masks name only the prompted objects: unless the scene says its background is empty, the
     opacity of unmasked rays is not penalised, whatever the box (a hull box included)."""
