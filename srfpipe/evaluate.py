@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from srfpipe import cameras
-from srfpipe.srf.trainer import SURROUNDING_SCENE_DISTORTION
+from srfpipe.srf.trainer import SURROUNDING_SCENE_DISTORTION, round_a_subject_in_a_scene
 
 log = logging.getLogger("srfpipe.evaluate")
 
@@ -161,10 +161,7 @@ def overfit_remedy(train_config: dict, poses_scene, background_empty: bool) -> s
     """The setting to try when a field fits its training views only, or None: `train.distortion`
     when it was off, the background is a scene (not an empty backdrop) and the cameras stand round
     their focus point (`cameras.cameras_surround`)."""
-    if train_config.get("distortion") or background_empty:
-        return None
-    poses = np.asarray(poses_scene, dtype=np.float64)
-    if not cameras.cameras_surround(poses, cameras.focus_point(poses)):
+    if train_config.get("distortion") or not round_a_subject_in_a_scene(poses_scene, background_empty):
         return None
     return f"try train.distortion: {DISTORTION_REMEDY} (mip-NeRF 360's distortion loss, against floaters)"
 

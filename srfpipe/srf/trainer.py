@@ -230,6 +230,13 @@ EMPTY_BACKGROUND_OPACITY = 0.01
 SURROUNDING_SCENE_DISTORTION = 0.01
 
 
+def round_a_subject_in_a_scene(poses_scene, background_empty: bool) -> bool:
+    """Where the distortion loss belongs: a background that is a scene, and cameras that stand
+    round their focus point (`cameras.cameras_surround`)."""
+    poses = np.asarray(poses_scene, dtype=np.float64)
+    return not background_empty and cameras.cameras_surround(poses, cameras.focus_point(poses))
+
+
 # The grid's default cell count, and the cap of the finest level when the pixels ask for more.
 # A cell should cover about one pixel where the cameras look (the box centre): the orchard and the
 # built-in plant get ~1.1 px per cell from 96 cells; the fox's phone images got 7 px per cell, a
@@ -349,11 +356,10 @@ def resolve_data_defaults(settings, data):
     if settings.background_rays == "auto":
         changes["background_rays"] = background_rays(data) if data.background_empty else "unmasked"
     if settings.distortion is None:
-        poses = data.poses_scene.detach().cpu().numpy().astype(np.float64)
-        surround = cameras.cameras_surround(poses, cameras.focus_point(poses))
-        changes["distortion"] = SURROUNDING_SCENE_DISTORTION if surround and not data.background_empty else 0.0
-        log.info("distortion %g (background %s, cameras %s)", changes["distortion"],
-                 "empty" if data.background_empty else "a scene", "round their subject" if surround else "facing one way")
+        belongs = round_a_subject_in_a_scene(data.poses_scene.detach().cpu().numpy(), data.background_empty)
+        changes["distortion"] = SURROUNDING_SCENE_DISTORTION if belongs else 0.0
+        log.info("distortion %g (%s)", changes["distortion"],
+                 "cameras round a subject in a scene" if belongs else "an empty backdrop or cameras facing one way")
     if settings.camera_refinement == "auto":
         changes["camera_refinement"] = data.gt_label is None
         log.info("camera_refinement %s (%s capture)", changes["camera_refinement"],
