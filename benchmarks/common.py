@@ -103,12 +103,39 @@ def rule_seconds(workdir: Path, scene: str, job: str) -> float | None:
     return total if found else None
 
 
+def cpu_probe_seconds(repeats: int = 5) -> float:
+    """Seconds this machine's CPU takes for a fixed piece of a training step: a gather of 2^18 rows
+    of 16 channels (what the dense grid's trilinear read does) through a small MLP, forward and
+    backward, best of `repeats`. Machines that report the same name and core count differ (one
+    here ran COLMAP, evaluation and training 1.7-1.9x slower than another), and a time budget holds
+    steps in proportion; two results' probes say how far their machines compare."""
+    import torch
+
+    generator = torch.Generator().manual_seed(0)
+    table = torch.randn(1 << 16, 16, generator=generator, requires_grad=True)
+    rows = torch.randint(0, 1 << 16, (1 << 18,), generator=generator)
+    layers = [torch.nn.Linear(16, 64), torch.nn.Linear(64, 64), torch.nn.Linear(64, 4)]
+
+    def once() -> float:
+        started = time.perf_counter()
+        x = table[rows]
+        for layer in layers[:-1]:
+            x = torch.relu(layer(x))
+        layers[-1](x).square().mean().backward()
+        return time.perf_counter() - started
+
+    once()  # allocations and lazy initialisation
+    return min(once() for _ in range(repeats))
+
+
 def machine_info(**extra) -> dict:
-    """Where a number was measured: platform, CPU, Python and torch versions, plus `extra`."""
+    """Where a number was measured: platform, CPU, its speed (`cpu_probe_seconds`), Python and torch
+    versions, plus `extra`."""
     import torch
 
     return {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-            "cpus": os.cpu_count(), "python": platform.python_version(), "torch": torch.__version__, **extra}
+            "cpus": os.cpu_count(), "cpu_probe_seconds": round(cpu_probe_seconds(), 4),
+            "python": platform.python_version(), "torch": torch.__version__, **extra}
 
 
 def result_path(name: str, quick: bool) -> Path:
