@@ -107,8 +107,8 @@ def cpu_probe_seconds(repeats: int = 5) -> float:
     """Seconds this machine's CPU takes for a fixed piece of a training step: a gather of 2^18 rows
     of 16 channels (what the dense grid's trilinear read does) through a small MLP, forward and
     backward, best of `repeats`. Machines that report the same name and core count differ (one
-    here ran COLMAP, evaluation and training 1.7-1.9x slower than another), and a time budget holds
-    steps in proportion; two results' probes say how far their machines compare."""
+    here ran the fox's COLMAP refinement 1.9x and training 2-5x slower than another), and a time
+    budget holds steps in proportion; two results' probes say how far their machines compare."""
     import torch
 
     generator = torch.Generator().manual_seed(0)
