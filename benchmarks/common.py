@@ -107,14 +107,15 @@ def cpu_probe_seconds(repeats: int = 5) -> float:
     """Seconds this machine's CPU takes for a fixed piece of a training step: a gather of 2^18 rows
     of 16 channels (what the dense grid's trilinear read does) through a small MLP, forward and
     backward, best of `repeats`. Machines that report the same name and core count differ (one
-    here ran the fox's COLMAP refinement 1.9x and training 2-5x slower than another), and a time
-    budget holds steps in proportion; two results' probes say how far their machines compare."""
+    here ran the fox's COLMAP refinement 1.9x slower than another, and its 10 minutes of training
+    held 31-84 % of the other's steps); two results' probes say how far their machines compare."""
     import torch
 
     generator = torch.Generator().manual_seed(0)
     table = torch.randn(1 << 16, 16, generator=generator, requires_grad=True)
     rows = torch.randint(0, 1 << 16, (1 << 18,), generator=generator)
-    layers = [torch.nn.Linear(16, 64), torch.nn.Linear(64, 64), torch.nn.Linear(64, 4)]
+    with torch.random.fork_rng():  # the layers' initial draws leave the caller's random stream as it was
+        layers = [torch.nn.Linear(16, 64), torch.nn.Linear(64, 64), torch.nn.Linear(64, 4)]
 
     def once() -> float:
         started = time.perf_counter()
