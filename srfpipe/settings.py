@@ -349,7 +349,7 @@ class TrainSettings(SettingsSection):
     object_rays: float = 0.1
     """when the pixels that show a class (dilated by 2 px) are fewer than this share of the training
     pixels, this share of every batch is drawn from them: a small object (a plant under 1 % of
-    the frame) would otherwise get a few rays a step. 0 = ..."""
+    the frame) would otherwise get a few rays a step"""
     background_opacity: float | None = None
     """weight of the loss on the opacity inside the model box of rays whose pixel shows none of the
     classes on an empty background (null: chosen from the data, see the README)"""

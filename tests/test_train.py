@@ -396,7 +396,7 @@ def test_a_small_object_gets_its_share_of_every_batch_and_a_large_one_changes_no
                            poses_scene=torch.eye(4).repeat(n, 1, 1), intrinsics=torch.tensor([[40.0, 40.0, 25.0, 20.0]] * n))
     views = np.arange(n)
     focus = object_pixels(data, views, 0.1)
-    assert focus is not None and focus.numel() == n * 25
+    assert focus is not None and [pool.numel() for pool in focus] == [n * 25]
     data.images[:, 18:23, 23:28] = 255  # the object and its 2-pixel margin are white
     rgb = sample_batch(data, views, 1000, step_generator(0, 5), torch.device("cpu"), focus, 0.1)[3]
     assert 0.1 <= float((rgb[:, 0] == 1).float().mean()) <= 0.13  # 100 drawn from it, a few more by chance
@@ -408,3 +408,36 @@ def test_a_small_object_gets_its_share_of_every_batch_and_a_large_one_changes_no
     data.multihot[:] = 0
     data.multihot[:, 20, 25] = 1
     assert object_pixels(data, views, 0.1) is None
+
+
+def test_on_an_empty_backdrop_the_focus_finds_the_object_in_frames_without_masks_and_keeps_half_for_the_masks():
+    """Labels on a few frames of a capture on an empty backdrop: the frames without masks (and the parts a
+    partial mask misses) still get rays, from the pixels that are not the backdrop's colour; the masked
+    pixels keep half the focused share however few frames have masks (else the heads see no positives)."""
+    from types import SimpleNamespace
+
+    from srfpipe.srf.trainer import object_pixels, sample_batch, step_generator
+
+    n, h, w = 10, 40, 50
+    images = torch.zeros(n, h, w, 3, dtype=torch.uint8)
+    images[:, 10:30, 25] = 200  # a thin stem, 20 pixels tall, in every frame
+    multihot = torch.zeros(n, h, w, 1, dtype=torch.uint8)
+    multihot[0, 10:20, 25] = 1  # one frame has a mask, and it marks the stem's upper half only
+    data = SimpleNamespace(multihot=multihot, height=h, width=w, labelled=np.array([True] + [False] * (n - 1)),
+                           images=images, backdrop=None, poses_scene=torch.eye(4).repeat(n, 1, 1),
+                           intrinsics=torch.tensor([[40.0, 40.0, 25.0, 20.0]] * n))
+    views = np.arange(n)
+    alone = object_pixels(data, views, 0.1)
+    assert len(alone) == 1 and set((alone[0] // (h * w)).tolist()) == {0}  # no backdrop: the masked frame only
+    data.backdrop = ([0.0, 0.0, 0.0], 8.0)
+    masked, matter = object_pixels(data, views, 0.1)
+    assert torch.equal(masked, alone[0])
+    frame, pixel = matter // (h * w), matter % (h * w)
+    stem = {v * w + 25 for v in range(10, 30)}
+    for view in range(n):  # every frame's whole stem, the part its mask missed included
+        assert stem <= set(pixel[frame == view].tolist())
+    assert matter.numel() == n * (20 + 4) * 5  # with the 2-pixel margin, and nothing of the backdrop beyond it
+    image = sample_batch(data, views, 2000, step_generator(0, 5), torch.device("cpu"), [masked, matter], 0.1)[2]
+    assert float((image[-200:] == 0).float().mean()) >= 0.5  # of the 200 focused rays, the masks' 100 (+ 1 in 10)
+    diluted = sample_batch(data, views, 2000, step_generator(0, 5), torch.device("cpu"), [matter], 0.1)[2]
+    assert float((diluted[-200:] == 0).float().mean()) < 0.2  # one pool of all: 1 in 10 is of the masked frame

@@ -138,41 +138,64 @@ def autocast_context(device, precision: str):
 
 
 def object_pixels(data, train_views, share: float, dilation_px: int = 2):
-    """Flat (image, y, x) indices of the training pixels that show a class (dilated by `dilation_px`),
-    or None when they already make up at least `share` of the training pixels (or there are none).
+    """The pools of training pixels (flat (image, y, x) indices, dilated by `dilation_px`) that a
+    share of each batch is drawn from, or None when the object's pixels already make up at least
+    `share` of the training pixels (or there are none).
 
     A small object (a plant under 1 % of the frame) would get a few rays of each batch, and its
     colour, its geometry and its semantic heads almost no signal; drawing `share` of every batch
     from its pixels fixes that without touching scenes whose classes fill more of the frame.
-    Frames without masks contribute none.
+    The first pool is what the masks mark (in the frames that have masks): the heads' positives.
+    On an empty backdrop (data.backdrop) a second pool holds every frame's pixels that show
+    matter, and the share is split between the two: the frames without masks (labels on a few
+    frames) and the parts that partial masks miss still train the object's geometry, while the
+    masked pixels keep half the share, however few frames have masks (one pool of all would
+    dilute them by the share of frames without masks, and the heads learn only background).
     """
     import cv2
     import torch
 
+    from srfpipe.srf.losses import shows_backdrop
+
     if data.multihot is None or data.multihot.shape[-1] == 0 or share <= 0:
         return None
+    backdrop = getattr(data, "backdrop", None)
     kernel = np.ones((2 * dilation_px + 1,) * 2, np.uint8)
     pixels = data.height * data.width
-    found = []
+    masked, matter = [], []
+
+    def indices(mask: np.ndarray, view) -> torch.Tensor:
+        return torch.from_numpy(np.flatnonzero(cv2.dilate(mask.astype(np.uint8), kernel).ravel()) + int(view) * pixels)
+
     for view in train_views:
-        if data.labelled is not None and not data.labelled[view]:
-            continue
-        marked = data.multihot[int(view)].numpy().any(axis=-1).astype(np.uint8)
-        flat = np.flatnonzero(cv2.dilate(marked, kernel).ravel())
-        found.append(torch.from_numpy(flat + int(view) * pixels))
-    indices = torch.cat(found) if found else torch.zeros(0, dtype=torch.int64)
+        marked = None
+        if data.labelled is None or data.labelled[view]:
+            marked = data.multihot[int(view)].numpy().any(axis=-1)
+            if marked.any():
+                masked.append(indices(marked, view))
+        if backdrop is not None:
+            colour = torch.tensor(backdrop[0]) / 255.0
+            shows = ~shows_backdrop(data.images[int(view)].float() / 255.0, colour, backdrop[1]).numpy()
+            if marked is not None:
+                shows |= marked
+            if shows.any():
+                matter.append(indices(shows, view))
+    pools = [torch.cat(found) for found in (masked, matter) if found]
     total = len(train_views) * pixels
-    if indices.numel() == 0 or indices.numel() >= share * total:
+    if not pools or max(pool.numel() for pool in pools) >= share * total:
         return None
-    log.info("the classes' pixels are %.2f %% of the training pixels: %.0f %% of each batch is drawn from them",
-             100.0 * indices.numel() / total, 100.0 * share)
-    return indices
+    log.info("the masked pixels are %.2f %%%s of the training pixels: %.0f %% of each batch is drawn from them",
+             100.0 * sum(t.numel() for t in masked) / total,
+             f" and the pixels that show matter on the empty backdrop {100.0 * pools[-1].numel() / total:.2f} %"
+             if matter else "", 100.0 * share)
+    return pools
 
 
 def sample_batch(data, train_views, count: int, generator, device, focus=None, focus_share: float = 0.0):
     """A random batch of pixels from the training views: rays, target rgb, multi-hot labels.
 
-    With `focus` (object_pixels), round(focus_share * count) of the pixels are drawn from it.
+    With `focus` (object_pixels' pools), round(focus_share * count) of the pixels are drawn from
+    them, an equal part from each.
     """
     image, v, u = draw_pixels(data, train_views, count, generator, focus, focus_share)
     origins, directions, rgb, labels = pixel_batch(data, image, v, u)
@@ -193,7 +216,10 @@ def draw_pixels(data, train_views, count: int, generator, focus=None, focus_shar
     u = randint(0, data.width, count - focused, generator, data.images.device)
     v = randint(0, data.height, count - focused, generator, data.images.device)
     if focused:
-        pick = focus[randint(0, focus.numel(), focused, generator, focus.device)]
+        pools = [focus] if isinstance(focus, torch.Tensor) else list(focus)
+        parts = [focused // len(pools) + (i < focused % len(pools)) for i in range(len(pools))]
+        pick = torch.cat([pool[randint(0, pool.numel(), part, generator, pool.device)]
+                          for pool, part in zip(pools, parts)])
         pixel = pick % (data.height * data.width)
         image = torch.cat([image, pick // (data.height * data.width)])
         v, u = torch.cat([v, pixel // data.width]), torch.cat([u, pixel % data.width])
@@ -413,7 +439,7 @@ class TrainingRun:
     fingerprint: str
     checkpoint_dir: Path
     out: Path
-    focus: Any  # object_pixels: the pixels a share of each batch is drawn from, or None
+    focus: Any  # object_pixels: the pools of pixels a share of each batch is drawn from, or None
     labelled_frames: Any  # per frame, whether it had masks (None: all)
     seen_fraction: dict | None
     watch: DivergenceWatch
