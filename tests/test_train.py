@@ -391,7 +391,7 @@ def test_a_small_object_gets_its_share_of_every_batch_and_a_large_one_changes_no
     n, h, w = 4, 40, 50
     multihot = torch.zeros(n, h, w, 1, dtype=torch.uint8)
     multihot[:, 20, 25] = 1  # one pixel a frame: 25 with the 2-pixel dilation, 1.25 % of the pixels
-    data = SimpleNamespace(multihot=multihot, height=h, width=w, labelled=None,
+    data = SimpleNamespace(multihot=multihot, height=h, width=w, labelled=None, backdrop=None,
                            images=torch.zeros(n, h, w, 3, dtype=torch.uint8),
                            poses_scene=torch.eye(4).repeat(n, 1, 1), intrinsics=torch.tensor([[40.0, 40.0, 25.0, 20.0]] * n))
     views = np.arange(n)

@@ -155,11 +155,8 @@ def object_pixels(data, train_views, share: float, dilation_px: int = 2):
     import cv2
     import torch
 
-    from srfpipe.srf.losses import shows_backdrop
-
     if data.multihot is None or data.multihot.shape[-1] == 0 or share <= 0:
         return None
-    backdrop = getattr(data, "backdrop", None)
     kernel = np.ones((2 * dilation_px + 1,) * 2, np.uint8)
     pixels = data.height * data.width
     masked, matter = [], []
@@ -173,9 +170,8 @@ def object_pixels(data, train_views, share: float, dilation_px: int = 2):
             marked = data.multihot[int(view)].numpy().any(axis=-1)
             if marked.any():
                 masked.append(indices(marked, view))
-        if backdrop is not None:
-            colour = torch.tensor(backdrop[0]) / 255.0
-            shows = ~shows_backdrop(data.images[int(view)].float() / 255.0, colour, backdrop[1]).numpy()
+        if data.backdrop is not None:
+            shows = shows_matter(data, int(view)).numpy()
             if marked is not None:
                 shows |= marked
             if shows.any():
@@ -216,7 +212,7 @@ def draw_pixels(data, train_views, count: int, generator, focus=None, focus_shar
     u = randint(0, data.width, count - focused, generator, data.images.device)
     v = randint(0, data.height, count - focused, generator, data.images.device)
     if focused:
-        pools = [focus] if isinstance(focus, torch.Tensor) else list(focus)
+        pools = list(focus)
         parts = [focused // len(pools) + (i < focused % len(pools)) for i in range(len(pools))]
         pick = torch.cat([pool[randint(0, pool.numel(), part, generator, pool.device)]
                           for pool, part in zip(pools, parts)])
@@ -315,23 +311,28 @@ def resolve_grid_defaults(settings, data) -> dict:
 MIN_MASK_COVERAGE = 0.5
 
 
-def mask_coverage(data) -> float | None:
-    """Of the labelled frames' pixels that are not the empty backdrop's colour (data.backdrop), the
-    share some mask marks; None without a known backdrop or any such pixel."""
+def shows_matter(data, index: int):
+    """(H, W) bool tensor: the pixels of frame `index` that are not the empty backdrop's colour
+    (data.backdrop: colour, level)."""
     import torch
 
     from srfpipe.srf.losses import shows_backdrop
 
+    colour, level = data.backdrop
+    return ~shows_backdrop(data.images[index].float() / 255.0, torch.tensor(colour) / 255.0, level)
+
+
+def mask_coverage(data) -> float | None:
+    """Of the labelled frames' pixels that are not the empty backdrop's colour (data.backdrop), the
+    share some mask marks; None without a known backdrop or any such pixel."""
     if data.backdrop is None or data.multihot is None:
         return None
-    colour, level = data.backdrop
-    colour = torch.tensor(colour) / 255.0
     frames = np.flatnonzero(np.ones(data.count, bool) if data.labelled is None else data.labelled)
     matter = marked = 0
     for i in frames:  # one frame at a time: a float copy of every frame at once is large
-        shows_matter = ~shows_backdrop(data.images[i].float() / 255.0, colour, level)
-        matter += int(shows_matter.sum())
-        marked += int((shows_matter & (data.multihot[i].amax(dim=-1) > 0)).sum())
+        shows = shows_matter(data, i)
+        matter += int(shows.sum())
+        marked += int((shows & (data.multihot[i].amax(dim=-1) > 0)).sum())
     return marked / matter if matter else None
 
 
