@@ -465,10 +465,14 @@ EVAL_CURVE_KEYS = ("step", "seconds", "psnr", "miou", "miou_gt")
 def run_steps(run: TrainingRun, hooks: list) -> None:
     """The training loop: one step, then the hooks in order; the first hook that returns True ends
     the run (srf/hooks.py). Steps are numbered from where a resumed run left off."""
+    from srfpipe.device import DeviceBacklog
+
+    backlog = DeviceBacklog(run.device)
     try:
         for step in range(run.step, run.settings.iterations):
             tick = time.perf_counter()
             run.terms, run.loss, run.outputs = training_step(run, step)
+            backlog.settle()  # on CUDA: count the device's time, not only the queuing
             run.seconds += time.perf_counter() - tick
             run.step = step + 1
             if any(hook.after_step(run) for hook in hooks):
