@@ -26,9 +26,10 @@ orchard_video_rot_err_deg, orchard_video_trans_err_pct (of the tree's bounding-b
 orchard_video_psnr, orchard_video_miou, fox_sfm_registered, fox_sfm_rot_err_deg, fox_sfm_psnr,
 sfm_seconds (wall time of the stages up to poses.zarr, per capture), {orchard,plant}_sparse_miou_{100,
 25,10,5}pct and _3frames (with background, as the issue's mIoU; `sparse` holds the per-class and
-classes-only numbers), and `posed_reference`: the posed builds' numbers from captures.json.
+classes-only numbers; with several `--seeds`, each share's point is their mean and `_sd` their spread), and `posed_reference`: the posed builds' numbers from captures.json.
 
     python benchmarks/wild.py [--quick] [--only orchard_video|fox_sfm|sparse] [--sparse-scenes orchard plant]
+                              [--fractions 100pct 10pct] [--seeds 0 1 2]
 
 A run of some parts keeps the other parts' last numbers in the JSON. `--quick`
 (results/wild_quick.json): a 72-view turn at 320 x 240 with every frame kept, no pipeline after the
@@ -209,9 +210,38 @@ def all_views_miou(results: Path) -> dict:
             "iou": dict(zip(["background", *data.classes], map(float, iou))), "views": data.count}
 
 
-def sparse_labels(workdir: Path, quick: bool, scenes: list[str], fractions: list[str]) -> dict:
-    """The sparse-label curve: each scene built once per labelled share, one scene name re-built
-    after a change of its mask folder (Snakemake re-runs masks, composite, train and evaluate only)."""
+def seed_result(run: dict) -> dict:
+    """What one training seed of a share measured (a run's fields as `sparse_labels` writes them)."""
+    return {"miou": run["all_views"]["miou"], "miou_classes": run["all_views"]["miou_classes"],
+            **{k: run.get(k) for k in ("psnr", "psnr_object", "miou_unlabelled_gt", "train_seconds")}}
+
+
+def with_seeds(earlier: dict | None, measured: dict) -> dict:
+    """One share's run with the seeds of an earlier run of it kept (a run without `seeds` was trained at
+    the default seed 0), and their mean: the curve's point, since one 5-minute run of the plant moves
+    by about 0.03 from build to build."""
+    seeds = dict((earlier or {}).get("seeds") or ({"0": seed_result(earlier)} if earlier else {}))
+    if earlier and earlier.get("labelled_frames") != measured["labelled_frames"]:
+        seeds = {}  # other frames labelled: not the same point
+    seeds.update(measured["seeds"])
+    lowest = lambda run: min(int(seed) for seed in run.get("seeds") or {"0": None})  # noqa: E731
+    first = earlier if earlier and seeds is not measured["seeds"] and lowest(earlier) < lowest(measured) else measured
+    values = np.array([seed["miou"] for seed in seeds.values()])
+    classes = np.array([seed["miou_classes"] for seed in seeds.values()])
+    return {**first, "seed": first.get("seed", 0), "seeds": seeds, "mean": {"miou": float(values.mean()), "miou_classes": float(classes.mean()),
+                                             "miou_sd": float(values.std(ddof=1)) if len(values) > 1 else None,
+                                             "seeds": len(values)}}
+
+
+def curve_point(run: dict) -> dict:
+    """The all-view mIoU of a share: the mean over its seeds where it has several."""
+    return run.get("mean") or run["all_views"]
+
+
+def sparse_labels(workdir: Path, quick: bool, scenes: list[str], fractions: list[str], seeds=(0,)) -> dict:
+    """The sparse-label curve: each scene built once per labelled share and training seed, one scene
+    name re-built after a change of its mask folder or seed (Snakemake re-runs masks, composite, train
+    and evaluate, or train and evaluate only)."""
     import shutil
 
     from srfpipe.evaluate import train_view_choice
@@ -235,21 +265,25 @@ def sparse_labels(workdir: Path, quick: bool, scenes: list[str], fractions: list
             folder.mkdir(parents=True)
             for index in chosen:
                 shutil.copy2(truth[index], folder / truth[index].name)
-            write_workdir(workdir, {name: sparse_scene(name, f"prepared/{name}/{tag}", quick)}, "eval")
-            print(f"=== {name}: {len(chosen)} of {len(train)} training frames labelled ({tag})", flush=True)
-            run_workflow(workdir, [f"results/{name}/eval"], log=workdir / "snakemake.log")
-            results = workdir / "results" / name
-            evaluated = json.loads((results / "eval" / "metrics.json").read_text())
-            everywhere = all_views_miou(results)
-            entry["runs"][tag] = {
-                "labelled_frames": [truth[i].stem for i in chosen], "all_views": everywhere,
-                **{k: evaluated.get(k) for k in ("psnr", "psnr_object", "miou_gt", "miou_gt_classes",
-                                                 "miou_unlabelled_gt", "miou_unlabelled_gt_classes", "train_seconds")},
-            }
-            entry[f"sparse_miou_{tag}"] = everywhere["miou"]
-            entry[f"sparse_miou_classes_{tag}"] = everywhere["miou_classes"]
-            print(f"{name:8} {tag:8} all-view mIoU {everywhere['miou']:.3f} (classes {everywhere['miou_classes']:.3f})"
-                  f", held-out {evaluated.get('miou_gt', float('nan')):.3f}", flush=True)
+            run = None
+            for seed in seeds:
+                scene = merge(sparse_scene(name, f"prepared/{name}/{tag}", quick), {"train": {"seed": seed}})
+                write_workdir(workdir, {name: scene}, "eval")
+                print(f"=== {name}: {len(chosen)} of {len(train)} training frames labelled ({tag}), seed {seed}", flush=True)
+                run_workflow(workdir, [f"results/{name}/eval"], log=workdir / "snakemake.log")
+                results = workdir / "results" / name
+                evaluated = json.loads((results / "eval" / "metrics.json").read_text())
+                everywhere = all_views_miou(results)
+                measured = {
+                    "labelled_frames": [truth[i].stem for i in chosen], "all_views": everywhere, "seed": seed,
+                    **{k: evaluated.get(k) for k in ("psnr", "psnr_object", "miou_gt", "miou_gt_classes",
+                                                     "miou_unlabelled_gt", "miou_unlabelled_gt_classes", "train_seconds")},
+                }
+                measured["seeds"] = {str(seed): seed_result(measured)}
+                run = measured if run is None else with_seeds(run, measured)
+                print(f"{name:8} {tag:8} seed {seed} all-view mIoU {everywhere['miou']:.3f} (classes "
+                      f"{everywhere['miou_classes']:.3f}), held-out {evaluated.get('miou_gt', float('nan')):.3f}", flush=True)
+            entry["runs"][tag] = run
         report[name] = entry
     return report
 
@@ -263,7 +297,7 @@ def plot_sparse(sparse: dict, path: Path, size=(520, 360)) -> None:
     width, height = size
     panel = np.full((height, width, 3), 255, np.uint8)
     left, bottom, w, h = 50, height - 45, width - 80, height - 90
-    points = {name: sorted((len(run["labelled_frames"]), run["all_views"]["miou"]) for run in entry["runs"].values())
+    points = {name: sorted((len(run["labelled_frames"]), curve_point(run)["miou"]) for run in entry["runs"].values())
               for name, entry in sparse.items()}
     most = max(n for curve in points.values() for n, _ in curve)
 
@@ -293,13 +327,15 @@ def plot_sparse(sparse: dict, path: Path, size=(520, 360)) -> None:
 
 
 def print_sparse(sparse: dict) -> None:
-    print(f"{'scene':8} {'labelled':>12} | {'all views':>9} {'classes':>7} | {'held-out':>8} {'unlabelled':>10}")
+    print(f"{'scene':8} {'labelled':>12} | {'all views':>9} {'classes':>7} {'seeds':>5} {'sd':>5} | {'held-out':>8} "
+          f"{'unlabelled':>10}   (all views: the seeds' mean; held-out, unlabelled: one seed)")
     for name, entry in sparse.items():
         for tag, run in entry["runs"].items():
-            held, unlabelled = run.get("miou_gt"), run.get("miou_unlabelled_gt")
-            print(f"{name:8} {tag + ' (' + str(len(run['labelled_frames'])) + ')':>12} | {run['all_views']['miou']:9.3f} "
-                  f"{run['all_views']['miou_classes']:7.3f} | {held if held is not None else float('nan'):8.3f} "
-                  f"{unlabelled if unlabelled is not None else float('nan'):10.3f}")
+            held, unlabelled, point = run.get("miou_gt"), run.get("miou_unlabelled_gt"), curve_point(run)
+            sd = point.get("miou_sd")
+            print(f"{name:8} {tag + ' (' + str(len(run['labelled_frames'])) + ')':>12} | {point['miou']:9.3f} "
+                  f"{point['miou_classes']:7.3f} {point.get('seeds', 1):5d} {sd if sd is not None else float('nan'):5.3f} | "
+                  f"{held if held is not None else float('nan'):8.3f} {unlabelled if unlabelled is not None else float('nan'):10.3f}")
 
 
 def posed_reference() -> dict:
@@ -320,6 +356,9 @@ def main() -> int:
     parser.add_argument("--sparse-scenes", nargs="+", default=list(SPARSE_SCENES), choices=list(SPARSE_SCENES))
     parser.add_argument("--fractions", nargs="+", default=list(SPARSE_FRACTIONS), choices=list(SPARSE_FRACTIONS),
                         help="the labelled shares of the curve to measure (default: all)")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0],
+                        help="train.seed of each run of a share (several: the curve's point is their mean; the seeds "
+                             "of an earlier run of the same share are kept)")
     parser.add_argument("--workdir", type=Path, default=REPO / "benchmarks" / "work" / "wild")
     args = parser.parse_args()
 
@@ -345,9 +384,16 @@ def main() -> int:
     if args.only in (None, "sparse"):
         sparse = report.setdefault("sparse", {})
         for name in args.sparse_scenes:
-            measured = sparse_labels(args.workdir / "sparse", args.quick, [name], args.fractions)[name]
-            earlier = sparse.get(name, {})  # a run of some shares keeps the others' runs
-            sparse[name] = {**earlier, **measured, "runs": {**earlier.get("runs", {}), **measured["runs"]}}
+            measured = sparse_labels(args.workdir / "sparse", args.quick, [name], args.fractions, args.seeds)[name]
+            earlier = sparse.get(name, {})  # a run of some shares keeps the others' runs, and their other seeds
+            runs = {**earlier.get("runs", {}),
+                    **{tag: with_seeds(earlier.get("runs", {}).get(tag), run) for tag, run in measured["runs"].items()}}
+            sparse[name] = {**earlier, **measured, "runs": runs}
+            for tag, run in runs.items():
+                point = curve_point(run)
+                sparse[name][f"sparse_miou_{tag}"], sparse[name][f"sparse_miou_classes_{tag}"] = point["miou"], point["miou_classes"]
+                if point.get("miou_sd") is not None:
+                    sparse[name][f"sparse_miou_{tag}_sd"] = point["miou_sd"]
             report.update({f"{name}_{k}": v for k, v in sparse[name].items() if k.startswith("sparse_miou")})
             write_result(path, report)
         plot_sparse(sparse, path.with_name(path.stem + "_sparse.png"))
