@@ -11,7 +11,8 @@ Snakemake workflow with the shipped scene file (captures.py's configuration: the
    object-pixel PSNR, mIoU against ground truth (the orchard, the plant) or the masks;
 3. `preset: paper` (the hash grid, 500k iterations): its steps/s over a short run and the hours
    its 500k iterations would take at that rate;
-4. `profile` (`--profile-steps`, 300 by default on CUDA): torch.profiler over that many orchard steps, the
+4. `profile` (`--profile-steps`, 300 by default on CUDA): torch.profiler over that many orchard steps after the
+   first `--profile-after` (2000: the CUDA graph's capacities have settled), the
    operations and kernels that take the most time a step, and the host's waits and copies a step;
 5. `interpolation_ms` (`--kernel-repeats`, 20 by default on CUDA): one forward and backward of each way to
    read the grids (`embedding_bag`, `grid_sample`, the gather) at the orchard's and the paper preset's sizes.
@@ -182,16 +183,19 @@ def agreement(workdir: Path, steps: int, device: str, reference_only: bool = Fal
     return result
 
 
-def profile_training(workdir: Path, steps: int) -> dict:
-    """torch.profiler over `srfpipe train` of the orchard for `steps` fixed steps, in this process:
-    the operations and kernels that take the most time a step (device time on CUDA, else CPU time)
-    and how often the host waits for the device or copies to or from it."""
+def profile_training(workdir: Path, steps: int, after: int = 0) -> dict:
+    """torch.profiler over `srfpipe train` of the orchard, in this process: `steps` steps after the
+    first `after` (the first steps are not the run's: on CUDA the graph's capacities start at 128
+    samples a ray and shrink as the occupancy grid empties, so a profile of steps 0-300 weighed the
+    start four times over). The operations and kernels that take the most time a step (device time
+    on CUDA, else CPU time) and how often the host waits for the device or copies to or from it."""
     import time
 
     import torch
-    from torch.profiler import ProfilerActivity, profile
+    from torch.profiler import ProfilerActivity, profile, schedule
 
     from srfpipe import cli
+    from srfpipe.srf import trainer
 
     results, out = workdir / "results" / "orchard", workdir / "runs" / "orchard" / "profile.zarr"
     shutil.rmtree(out, ignore_errors=True)
@@ -199,17 +203,29 @@ def profile_training(workdir: Path, steps: int) -> dict:
     cuda = torch.cuda.is_available()
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
     start = time.perf_counter()
-    with profile(activities=activities) as prof:
-        cli.main(["train", "--images", str(results / "images.zarr"), "--labels", str(results / "labels.zarr"),
-                  "--out", str(out), "--scene", str(workdir / "config" / "scenes" / "orchard.yaml"),
-                  "--options", json.dumps({"device": "auto", "iterations": steps, "time_budget": 0, "eval_every": 0,
-                                           "snapshot_seconds": [], "checkpoint_every": 0})])
+    # the profiler's schedule advances once a training step: the loop's own step function, wrapped
+    step_function = trainer.training_step
+    with profile(activities=activities, schedule=schedule(wait=after, warmup=min(after, 5), active=steps, repeat=1)) as prof:
+        def profiled_step(run, step):
+            result = step_function(run, step)
+            prof.step()
+            return result
+
+        trainer.training_step = profiled_step
+        try:
+            cli.main(["train", "--images", str(results / "images.zarr"), "--labels", str(results / "labels.zarr"),
+                      "--out", str(out), "--scene", str(workdir / "config" / "scenes" / "orchard.yaml"),
+                      "--options", json.dumps({"device": "auto", "iterations": after + min(after, 5) + steps + 1,
+                                               "time_budget": 0, "eval_every": 0, "snapshot_seconds": [],
+                                               "checkpoint_every": 0})])
+        finally:
+            trainer.training_step = step_function
     wall = time.perf_counter() - start
     events = prof.key_averages()
     own = (lambda e: e.self_device_time_total) if cuda else (lambda e: e.self_cpu_time_total)
     top = sorted(events, key=own, reverse=True)[:10]
     calls = {e.key: e.count for e in events}
-    return {"steps": steps, "wall_seconds_profiled": wall, "time": "device" if cuda else "cpu",
+    return {"steps": steps, "after_steps": after, "wall_seconds_profiled": wall, "time": "device" if cuda else "cpu",
             "per_step_ms": {e.key[:80]: own(e) / 1000.0 / steps for e in top},
             "calls_per_step": {e.key[:80]: e.count / steps for e in top},
             "total_ms_per_step": sum(own(e) for e in events) / 1000.0 / steps,
@@ -311,6 +327,8 @@ def main() -> int:
                         help="steps of the CUDA-against-CPU check on the orchard (0: none)")
     parser.add_argument("--profile-steps", type=int, default=None,
                         help="profile this many orchard training steps (default 300 on CUDA, none on the CPU; 0: none)")
+    parser.add_argument("--profile-after", type=int, default=2000,
+                        help="steps before the profiled ones (default 2000: the capacities have settled)")
     parser.add_argument("--kernel-repeats", type=int, default=None,
                         help="time each way to read the grids over this many passes (default 20 on CUDA, none on the CPU; 0: none)")
     parser.add_argument("--cpu-reference", action="store_true",
@@ -413,7 +431,7 @@ def main() -> int:
     report["budgets_seconds"] = sorted({p["budget_seconds"] for s in report["scenes"].values() for p in s["curve"]})
     profile_steps = args.profile_steps if args.profile_steps is not None else (300 if device_name() != "cpu" else 0)
     if profile_steps and "orchard" in names:
-        report["profile"] = profile_training(args.workdir, profile_steps)
+        report["profile"] = profile_training(args.workdir, profile_steps, args.profile_after)
     elif previous.get("profile"):
         report["profile"] = dict(previous["profile"], measured_in_an_earlier_run=True)
     report.update({"machine": machine_info(quick=args.quick, device=device_name(), command=" ".join(sys.argv)),
