@@ -224,8 +224,10 @@ def with_seeds(earlier: dict | None, measured: dict) -> dict:
     if earlier and earlier.get("labelled_frames") != measured["labelled_frames"]:
         seeds = {}  # other frames labelled: not the same point
     seeds.update(measured["seeds"])
-    lowest = lambda run: min(int(seed) for seed in run.get("seeds") or {"0": None})  # noqa: E731
-    first = earlier if earlier and seeds is not measured["seeds"] and lowest(earlier) < lowest(measured) else measured
+    def lowest(run: dict) -> int:
+        return min(int(seed) for seed in run.get("seeds") or {"0": None})
+
+    first = earlier if earlier and lowest(earlier) < lowest(measured) else measured  # its fields: the lowest seed's
     values = np.array([seed["miou"] for seed in seeds.values()])
     classes = np.array([seed["miou_classes"] for seed in seeds.values()])
     return {**first, "seed": first.get("seed", 0), "seeds": seeds, "mean": {"miou": float(values.mean()), "miou_classes": float(classes.mean()),
