@@ -397,11 +397,14 @@ DEFAULT_TOLERANCE_DB = 0.3
 
 def candidate_change(panel: dict, baseline_files: list[Path]) -> tuple[dict, dict]:
     """Each capture's candidate numbers minus the defaults' panel entry from the first of
-    `baseline_files` that has the capture; and which file that was, per capture."""
+    `baseline_files` that has the capture at the candidate's steps (else the first that has it: the
+    equal-steps baseline may hold an older panel's steps); and which file that was, per capture."""
     baselines = [(path, json.loads(path.read_text()).get("panel", {})) for path in baseline_files if path.exists()]
     change, used = {}, {}
     for name, entry in panel.items():
-        path, base = next(((path, b[name]) for path, b in baselines if name in b), (None, {}))
+        having = [(path, b[name]) for path, b in baselines if name in b]
+        same_steps = [(path, base) for path, base in having if base.get("steps") == entry.get("steps")]
+        path, base = (same_steps or having or [(None, {})])[0]
         used[name] = path.name if path else None
         change[name] = {key: entry[key] - base[key] for key in CHANGE_KEYS
                         if isinstance(entry.get(key), float) and isinstance(base.get(key), float)}

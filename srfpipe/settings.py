@@ -336,6 +336,10 @@ class TrainSettings(SettingsSection):
     """size of the latent h"""
     sh_degree: int = 4
     """spherical-harmonic bands of the view direction"""
+    background_sh_degree: int | None = None
+    """spherical-harmonic bands of the direction that the background colour model (what a ray sees
+    beyond the field) reads. null = from the capture: 2 (the direction itself: a smooth function
+    that a new view between the training views ..."""
     appearance_dim: int | None = None
     """per-image appearance embedding size (0 = off; null = 8 for real captures, whose exposure and
     white balance vary from image to image, 0 for generated ones with ground truth)"""

@@ -317,6 +317,20 @@ def test_distortion_loss_by_default_only_round_a_subject_in_a_scene():
     assert resolve_data_defaults({"distortion": None}, orbit).distortion == 0.0
 
 
+def test_the_background_model_reads_the_direction_alone_only_on_an_empty_backdrop():
+    """train.background_sh_degree null: on an empty backdrop the background model is most of every
+    view, and two bands interpolate it between the training views (the plant +3.2 dB held-out); in
+    a scene it keeps the colour's bands (two cost the orchard's sky 0.44 dB); a number given is kept."""
+    from srfpipe.srf.trainer import EMPTY_BACKDROP_SH_DEGREE, resolve_data_defaults
+
+    scene = camera_ring_data(100.0)
+    assert resolve_data_defaults({"background_sh_degree": None}, scene).background_sh_degree == 4
+    assert resolve_data_defaults({"background_sh_degree": None, "sh_degree": 3}, scene).background_sh_degree == 3
+    scene.background_empty = True
+    assert resolve_data_defaults({"background_sh_degree": None}, scene).background_sh_degree == EMPTY_BACKDROP_SH_DEGREE == 2
+    assert resolve_data_defaults({"background_sh_degree": 4}, scene).background_sh_degree == 4
+
+
 def test_background_penalty_only_where_the_capture_says_its_background_is_empty():
     """Masks name only the prompted objects: unless the scene says its background is empty, the
     opacity of unmasked rays is not penalised, whatever the box (a hull box included)."""

@@ -110,7 +110,8 @@ class SemanticField(nn.Module):
     """F_sigma, F_c and F_s over the scene frame. `config` is JSON-able and rebuilds the module.
 
     Keys: box_min, box_max (scene frame), contraction, inner (encoding config), outer (encoding
-    config or None), density_grid, hidden, geo_features, sh_degree, num_classes, appearance_dim,
+    config or None), density_grid, hidden, geo_features, sh_degree, background_sh_degree (default
+    sh_degree), num_classes, appearance_dim,
     num_images, density_bias, color_layers.
 
     Two forms of F_sigma:
@@ -179,7 +180,11 @@ class SemanticField(nn.Module):
         # colours; the position is not a parameter, so geometry stays out of reach of L_sem.
         self.semantic_octaves = int(c["semantic_octaves"])
         self.semantic_mlp = mlp(geo + 6 * self.semantic_octaves, hidden, self.num_classes)
-        self.background_mlp = mlp(self.sh_degree**2, 32, 3)
+        # the background model reads fewer bands than the colour: a sky seen through a few narrow
+        # views must be interpolated between them, not fitted per direction (fields saved before
+        # this key read all of the colour's bands)
+        self.background_sh_degree = int(c.get("background_sh_degree", self.sh_degree))
+        self.background_mlp = mlp(self.background_sh_degree**2, 32, 3)
         # background logits: rays that leave the field see "no class" unless learned otherwise
         self.background_logits = nn.Parameter(torch.full((self.num_classes,), -2.0))
 
@@ -323,7 +328,7 @@ class SemanticField(nn.Module):
 
     def background(self, directions: torch.Tensor) -> torch.Tensor:
         """Colour (R, 3) seen along directions that leave the field (sky)."""
-        return torch.sigmoid(self.background_mlp(spherical_harmonics(directions, self.sh_degree)))
+        return torch.sigmoid(self.background_mlp(spherical_harmonics(directions, self.background_sh_degree)))
 
     def density_parameters(self) -> list[nn.Parameter]:
         """The parameters of F_sigma (geometry: sigma and the latent h)."""
