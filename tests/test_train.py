@@ -320,7 +320,7 @@ def test_distortion_loss_by_default_only_round_a_subject_in_a_scene():
 def test_the_background_model_reads_the_direction_alone_only_on_an_empty_backdrop():
     """train.background_sh_degree null: on an empty backdrop the background model is most of every
     view, and two bands interpolate it between the training views (the plant +3.2 dB held-out); in
-    a scene it keeps the colour's bands (two cost the orchard's sky 0.44 dB); a number given is kept."""
+    a scene it keeps the colour's bands (two cost the orchard 0.44 dB); a number given is kept."""
     from srfpipe.srf.trainer import EMPTY_BACKDROP_SH_DEGREE, resolve_data_defaults
 
     scene = camera_ring_data(100.0)

@@ -111,8 +111,7 @@ class SemanticField(nn.Module):
 
     Keys: box_min, box_max (scene frame), contraction, inner (encoding config), outer (encoding
     config or None), density_grid, hidden, geo_features, sh_degree, background_sh_degree (default
-    sh_degree), num_classes, appearance_dim,
-    num_images, density_bias, color_layers.
+    sh_degree), num_classes, appearance_dim, num_images, density_bias, color_layers.
 
     Two forms of F_sigma:
     * `density_grid: true` (the CPU default with dense grids): sigma reads its own one-channel
@@ -180,9 +179,9 @@ class SemanticField(nn.Module):
         # colours; the position is not a parameter, so geometry stays out of reach of L_sem.
         self.semantic_octaves = int(c["semantic_octaves"])
         self.semantic_mlp = mlp(geo + 6 * self.semantic_octaves, hidden, self.num_classes)
-        # the background model reads fewer bands than the colour: a sky seen through a few narrow
-        # views must be interpolated between them, not fitted per direction (fields saved before
-        # this key read all of the colour's bands)
+        # the background model may read fewer bands than the colour: a backdrop seen through a few
+        # narrow views must be interpolated between them, not fitted per direction (fields saved
+        # before this key read all of the colour's bands)
         self.background_sh_degree = int(c.get("background_sh_degree", self.sh_degree))
         self.background_mlp = mlp(self.background_sh_degree**2, 32, 3)
         # background logits: rays that leave the field see "no class" unless learned otherwise
