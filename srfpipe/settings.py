@@ -305,8 +305,9 @@ class TrainSettings(SettingsSection):
     detail_size: float | None = None
     """grid cell size in world units (metres for the orchard)"""
     default_cells: int | None = None
-    """cells along the largest extent when detail_size is null (null = from the images: 96, or up to
-    192 when 96 cells would each span more than 2 pixels)"""
+    """cells along the largest extent when detail_size is null (null = from the images: 96, up to
+    192 when 96 cells would each span more than 2 pixels, fewer (one pixel each, at least 24)
+    when they would span less than one)"""
     grid_levels: int | None = None
     """dense grids at this many resolutions, each half as fine as the next (the finest has the cells
     set by detail_size / default_cells)"""

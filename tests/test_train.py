@@ -380,10 +380,12 @@ def camera_ring_data(focal: float, distance: float = 3.0, n: int = 8):
                            backdrop=None, multihot=None)
 
 
-@pytest.mark.parametrize("focal, cells, levels", [(100.0, 96, 1), (300.0, 192, 3), (3000.0, 192, 3)])
+@pytest.mark.parametrize("focal, cells, levels", [(200.0, 96, 1), (300.0, 192, 3), (3000.0, 192, 3),
+                                                  (72.0, 48, 1), (20.0, 24, 1)])
 def test_grid_follows_the_pixels_a_cell_covers(focal, cells, levels):
-    """96 cells over a 2-unit box seen from 3 units: a cell spans focal/144 px. Coarse images
-    keep one 96-cell grid; sharp ones get three levels whose finest approaches a pixel (<= 192)."""
+    """96 cells over a 2-unit box seen from 3 units: a cell spans focal/144 px. Images at 1-2 px per
+    cell keep one 96-cell grid; sharp ones get three levels whose finest approaches a pixel (<= 192);
+    a box small in the frame gets one cell per pixel (48 at 0.5 px per cell), at least 24."""
     from srfpipe.srf.trainer import pixels_per_cell, resolve_data_defaults
 
     data = camera_ring_data(focal)

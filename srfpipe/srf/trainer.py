@@ -263,10 +263,15 @@ def round_a_subject_in_a_scene(poses_scene, background_empty: bool) -> bool:
 # A cell should cover about one pixel where the cameras look (the box centre): the orchard and the
 # built-in plant get ~1.1 px per cell from 96 cells; the fox's phone images got 7 px per cell, a
 # blur no training removes. Finer single grids overfit (fox at 400 steps: 192 cells 19.5 dB vs
-# 96 cells 19.9 dB); three levels up to 192 cells gave 21.7 dB.
+# 96 cells 19.9 dB); three levels up to 192 cells gave 21.7 dB. Cells smaller than a pixel overfit
+# too: the plant small in the frame (0.6 px per cell at 96) fitted its 15 views with ghost leaves
+# between them; 54 cells (one pixel each) raised its held-out object pixels 15.84 -> 17.02 dB and
+# 15.28 -> 16.57 at two seeds; 40 cells (1.4 px each) lost 0.9 dB.
 FINEST_CELLS = 192
 MULTI_LEVELS = 3
 MAX_PIXELS_PER_CELL = 2.0
+MIN_PIXELS_PER_CELL = 1.0
+COARSEST_CELLS = 24  # a box seen at a few pixels across still gets a grid that can hold a shape
 
 
 def pixels_per_cell(data, cells: int) -> float:
@@ -284,9 +289,10 @@ def pixels_per_cell(data, cells: int) -> float:
 
 def resolve_grid_defaults(settings, data) -> dict:
     """default_cells, grid_levels and features from the images' resolution (see BASE_CELLS), as
-    changes to `settings`: one grid of 96 cells when a cell then covers <= 2 pixels, else three
-    levels whose finest matches a pixel (at most 192 cells). Values the scene sets are kept; a scene
-    that sets its cells gets one level unless it sets grid_levels too."""
+    changes to `settings`: one grid of 96 cells when a cell then covers 1-2 pixels, fewer when it
+    would cover less than a pixel (one pixel each, at least COARSEST_CELLS), else three levels whose
+    finest matches a pixel (at most 192 cells). Values the scene sets are kept; a scene that sets
+    its cells gets one level unless it sets grid_levels too."""
     changes = {}
     auto_cells, auto_levels = settings.default_cells is None, settings.grid_levels is None
     if auto_cells or auto_levels:
@@ -294,7 +300,13 @@ def resolve_grid_defaults(settings, data) -> dict:
         # a scene that sets its cells (default_cells or detail_size) chose its grid: one level
         fine = coarse > MAX_PIXELS_PER_CELL and auto_cells and settings.detail_size is None
         if auto_cells:
-            changes["default_cells"] = min(int(round(BASE_CELLS * coarse)), FINEST_CELLS) if fine else BASE_CELLS
+            one_pixel = int(round(BASE_CELLS * coarse))  # cells across at which a cell spans a pixel
+            if fine:
+                changes["default_cells"] = min(one_pixel, FINEST_CELLS)
+            elif coarse < MIN_PIXELS_PER_CELL:
+                changes["default_cells"] = max(one_pixel, COARSEST_CELLS)
+            else:
+                changes["default_cells"] = BASE_CELLS
         if auto_levels:
             changes["grid_levels"] = MULTI_LEVELS if fine else 1
         log.info("grid: %d cells across, %d level(s) (%.1f px per cell at %d cells)",
