@@ -356,8 +356,9 @@ class TrainSettings(SettingsSection):
     pixels, this share of every batch is drawn from them: a small object (a plant under 1 % of
     the frame) would otherwise get a few rays a step"""
     background_opacity: float | None = None
-    """weight of the loss on the opacity inside the model box of rays whose pixel shows none of the
-    classes on an empty background (null: chosen from the data, see the README)"""
+    """weight of the loss on the opacity along the rays (the box and the shell beyond it) whose
+    pixel shows none of the classes on an empty background (null: chosen from the data, see the
+    README)"""
     background_rays: str = 'auto'
     """which rays the empty-background loss empties: unmasked (every pixel no mask marks) or
     backdrop (those that also have the backdrop's colour, so a part the masks miss keeps its

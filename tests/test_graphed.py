@@ -32,9 +32,9 @@ def foggy_model(device, **options):
 def render_and_backward(model, rays, capacity):
     model.use_static_shapes(capacity)
     model.zero_grad()
-    out = model(*rays, box_accumulation=True)
+    out = model(*rays)
     loss = (out["rgb"].square().sum() + out["logits"].sigmoid().sum() + out["distortion"]
-            + out["box_accumulation"].sum())
+            + out["accumulation"].sum())
     loss.backward()
     return out, {name: p.grad.clone() for name, p in model.named_parameters() if p.grad is not None}
 
@@ -51,7 +51,7 @@ def test_static_shapes_render_and_differentiate_like_the_packed_samples(device, 
     packed, packed_grads = render_and_backward(model, rays, None)
     static, static_grads = render_and_backward(model, rays, (10**6, 10**6))
     assert int(static["samples"]) == packed["samples"] > 1000 and int(static["shaded"]) == packed["shaded"]
-    for key in ("rgb", "logits", "depth", "accumulation", "distortion", "box_accumulation"):
+    for key in ("rgb", "logits", "depth", "accumulation", "distortion"):
         assert torch.allclose(static[key], packed[key], atol=2e-6), key
     assert set(static_grads) == set(packed_grads)
     for name, grad in packed_grads.items():

@@ -203,8 +203,7 @@ class GraphedSteps:
             origins, directions = run.cameras(self.image, origins, directions)
         valid = None if run.labelled_frames is None else run.labelled_frames[self.image]
         with self.autocast if self.autocast is not None else run.autocast:
-            outputs = model(origins, directions, self.image, self.jitter,
-                            box_accumulation=bool(run.settings.background_opacity))
+            outputs = model(origins, directions, self.image, self.jitter)
         terms = loss_terms(run.settings, model, outputs, rgb, labels, valid, None, run.backdrop, run.cameras)
         loss = sum_terms(terms)
         loss.backward()

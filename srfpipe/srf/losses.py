@@ -53,15 +53,17 @@ def total_loss(
     return {"loss": photo + lambda_sem * sem, "photometric": photo, "semantic": sem}
 
 
-def background_opacity_loss(box_accumulation: torch.Tensor, labels: torch.Tensor,
+def background_opacity_loss(accumulation: torch.Tensor, labels: torch.Tensor,
                             valid: torch.Tensor | None = None,
                             shows_backdrop: torch.Tensor | None = None) -> torch.Tensor:
-    """Mean opacity inside the model box of the rays whose pixel shows the empty backdrop.
+    """Mean opacity of the rays whose pixel shows the empty backdrop.
 
-    Such a ray crosses the box through empty space: any opacity it gathers there is fog or a
-    floater that the photometric loss cannot see against a plain background (dark density in
-    front of a dark backdrop costs nothing in the training views and hides the object in the
-    others). box_accumulation (R,), labels (R, C) multi-hot.
+    Such a ray crosses empty space: any opacity it gathers is fog or a floater that the
+    photometric loss cannot see against a plain background (dark density in front of a dark
+    backdrop costs nothing in the training views and hides the object in the others). The whole
+    ray counts, the model box and the contracted shell alike: the background colour model
+    shows the backdrop, and fog asked out of the box only settles just beyond it (a tight box
+    round a plant), where new views see it beside the plant. accumulation (R,), labels (R, C) multi-hot.
 
     `shows_backdrop` (R,): the pixel has the backdrop's colour (from the image, in every frame).
     A pixel counts when it shows the backdrop and none of the classes: a part the masks missed (a
@@ -77,7 +79,7 @@ def background_opacity_loss(box_accumulation: torch.Tensor, labels: torch.Tensor
         background = background & valid
     # a masked mean, not a boolean index: no host sync on CUDA; 0 when no ray shows background
     weight = background.float()
-    return (box_accumulation.float() * weight).sum() / weight.sum().clamp_min(1.0)
+    return (accumulation.float() * weight).sum() / weight.sum().clamp_min(1.0)
 
 
 def shows_backdrop(rgb: torch.Tensor, colour: torch.Tensor, level: float) -> torch.Tensor:

@@ -240,12 +240,11 @@ class SRFModel(nn.Module):
         samples.candidates = candidates
         return samples
 
-    def forward(self, origins, directions, image_index=None, jitter=None, box_accumulation=False) -> dict:
+    def forward(self, origins, directions, image_index=None, jitter=None) -> dict:
         """Render rays (R, 3) in the scene frame. Returns rgb (R, 3), logits (R, C), depth (R,)
-        (scene-frame distance along the ray), accumulation (R,), samples (number evaluated);
-        in training with `box_accumulation`, also the opacity gathered inside the box alone (R,)."""
+        (scene-frame distance along the ray), accumulation (R,), samples (number evaluated)."""
         if self.training and self.capacities is not None:
-            return self._forward_static(origins, directions, image_index, jitter, box_accumulation)
+            return self._forward_static(origins, directions, image_index, jitter)
         field = self.field
         samples = self.sample(origins, directions, jitter)
         mask = samples.mask
@@ -277,13 +276,6 @@ class SRFModel(nn.Module):
         out = self._composite(directions, samples, weights, rgb_pad, sem_pad, image_index)
         out["samples"] = int(rays.numel())
         out["shaded"] = int(shade_rays.numel())
-        if self.training and box_accumulation:
-            # opacity the model box alone gives each ray (the contracted shell excluded): the
-            # background-opacity loss asks it to be zero where the masks see none of the classes;
-            # only then, as it costs a pass over every sample of the step
-            in_box = (field.box_coordinates(points).abs() <= 1.0).all(dim=-1)
-            in_box_pad = torch.zeros(n, k, dtype=torch.bool, device=in_box.device).masked_scatter(mask, in_box)
-            out["box_accumulation"] = (weights * in_box_pad).sum(dim=-1)
         if not self.training:
             tolerance = FLOATER_CELLS * self.config["detail_scene"] + samples.delta
             out["significant"], out["floaters"] = rendering.floater_counts(
@@ -323,7 +315,7 @@ class SRFModel(nn.Module):
                 weights, samples.t_start / (samples.t_start + d), samples.t_end / (samples.t_end + d)).mean()
         return out
 
-    def _forward_static(self, origins, directions, image_index, jitter, box_accumulation) -> dict:
+    def _forward_static(self, origins, directions, image_index, jitter) -> dict:
         """`forward` in training with sizes fixed by the batch (see use_static_shapes): the same
         rendering, as culled intervals carry sigma = 0 and length 0 in place of being removed, and
         a sample below the colour threshold adds nothing either way."""
@@ -364,9 +356,6 @@ class SRFModel(nn.Module):
         out = self._composite(directions, samples, weights, rgb_pad, sem_pad, image_index)
         out["samples"] = mask.sum()
         out["shaded"] = significant.sum()
-        if box_accumulation:
-            in_box = (field.box_coordinates(points).abs() <= 1.0).all(dim=-1).view(n, k)
-            out["box_accumulation"] = (weights * in_box).sum(dim=-1)
         return out
 
     @torch.no_grad()

@@ -553,7 +553,7 @@ def training_step(run: TrainingRun, step: int):
     if run.cameras is not None:  # outside autocast: rays in full precision
         origins, directions = run.cameras(image, origins, directions)
     with run.autocast:
-        outputs = model(origins, directions, image, jitter, box_accumulation=bool(s.background_opacity))
+        outputs = model(origins, directions, image, jitter)
     valid = None if run.labelled_frames is None else run.labelled_frames[image]
     terms = loss_terms(s, model, outputs, rgb, labels, valid, generator, run.backdrop, run.cameras)
     loss = sum_terms(terms)
@@ -583,7 +583,7 @@ def loss_terms(s: TrainSettings, model, outputs: dict, rgb, labels, valid, gener
         terms["distortion"] = s.distortion * outputs["distortion"]
     if s.background_opacity:
         terms["background_opacity"] = s.background_opacity * losses.background_opacity_loss(
-            outputs["box_accumulation"], labels, valid,
+            outputs["accumulation"], labels, valid,
             None if backdrop is None else losses.shows_backdrop(rgb, *backdrop))
     if s.tv_density and model.field.density_grid:
         terms["tv_density"] = s.tv_density * losses.grid_total_variation(model.field.inner_sigma, s.tv_samples, generator)
