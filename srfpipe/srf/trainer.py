@@ -371,8 +371,8 @@ def resolve_data_defaults(settings, data):
     initial_opacity: 0.01 per step when the bounds are known (config, ground truth), 0.001 when
     they were estimated (see TRUSTED_BOUNDS).
     background_opacity: when the capture says its background is empty (labels.background), a
-    pixel that shows the backdrop (its colour, and none of the classes) sees empty space through
-    the box, so opacity there is penalised; otherwise (the orchard's ground, a room) the box holds
+    pixel that shows the backdrop (its colour, and none of the classes) sees empty space all
+    along its ray, so opacity there is penalised; otherwise (the orchard's ground, a room) the box holds
     things the classes do not name, so it is off.
     background_rays: which of those rays (see `background_rays`).
     background_sh_degree: on an empty backdrop, EMPTY_BACKDROP_SH_DEGREE: the backdrop is most of
