@@ -145,3 +145,22 @@ def test_background_opacity_loss_empties_the_rays_that_show_no_class():
     # no ray without a class: zero, with a graph
     none = losses.background_opacity_loss(out["accumulation"], torch.ones(64, 1))
     assert float(none) == 0.0 and none.requires_grad
+
+
+def test_the_trainer_asks_the_shell_beyond_the_box_to_be_empty_too():
+    """The training step's background-opacity term reads the whole ray: a backdrop ray that
+    crosses only the contracted shell is charged for its opacity (a box-only term charged it 0,
+    and the fog settled there, beside a plant in a tight box)."""
+    from test_stability import tiny_model
+
+    from srfpipe.settings import TrainSettings
+    from srfpipe.srf.trainer import loss_terms
+
+    model = tiny_model(classes=1)
+    model.train()
+    above = torch.tensor([[0.0, 0.0, 3.0]]), torch.tensor([[0.0, 1.0, 0.0]])  # never enters the box
+    outputs = model(*above)
+    assert float(outputs["accumulation"][0]) > 0.05
+    settings = TrainSettings.from_options({"background_opacity": 1.0})
+    terms = loss_terms(settings, model, outputs, torch.zeros(1, 3), torch.zeros(1, 1), None, None)
+    assert float(terms["background_opacity"]) == pytest.approx(float(outputs["accumulation"][0]))
