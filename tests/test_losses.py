@@ -116,6 +116,10 @@ def test_background_opacity_spares_the_parts_the_masks_missed():
     assert float(losses.background_opacity_loss(accumulation, labels, valid)) == pytest.approx(0.55)
 
 
+# a ray that passes above the model box: it gathers its opacity in the contracted shell alone
+ABOVE_THE_BOX = torch.tensor([[0.0, 0.0, 3.0]]), torch.tensor([[0.0, 1.0, 0.0]])
+
+
 def test_background_opacity_loss_empties_the_rays_that_show_no_class():
     """Rays whose pixel shows none of the classes lose the opacity they gather, in the box and
     in the contracted shell beyond it alike; the rays that show a class are not asked anything."""
@@ -126,22 +130,20 @@ def test_background_opacity_loss_empties_the_rays_that_show_no_class():
     origins, directions = rays(64)
     labels = torch.zeros(64, 1)
     labels[:32] = 1.0  # half the rays show the class
-    # a ray that passes above the box gathers its opacity in the shell alone
-    above = torch.tensor([[0.0, 0.0, 3.0]]), torch.tensor([[0.0, 1.0, 0.0]])
     shell_labels = torch.zeros(1, 1)
     first = float(losses.background_opacity_loss(model(origins, directions)["accumulation"], labels))
-    first_shell = float(losses.background_opacity_loss(model(*above)["accumulation"], shell_labels))
+    first_shell = float(losses.background_opacity_loss(model(*ABOVE_THE_BOX)["accumulation"], shell_labels))
     assert first > 0.05 and first_shell > 0.05
     optimizer = torch.optim.Adam(model.parameters(), lr=0.05)
     for _ in range(150):  # the tiny field starts opaque along its whole rays (the shell too)
         loss = (losses.background_opacity_loss(model(origins, directions)["accumulation"], labels)
-                + losses.background_opacity_loss(model(*above)["accumulation"], shell_labels))
+                + losses.background_opacity_loss(model(*ABOVE_THE_BOX)["accumulation"], shell_labels))
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
     out = model(origins, directions)
     assert float(losses.background_opacity_loss(out["accumulation"], labels)) < 0.1 * first
-    assert float(losses.background_opacity_loss(model(*above)["accumulation"], shell_labels)) < 0.1 * first_shell
+    assert float(losses.background_opacity_loss(model(*ABOVE_THE_BOX)["accumulation"], shell_labels)) < 0.1 * first_shell
     # no ray without a class: zero, with a graph
     none = losses.background_opacity_loss(out["accumulation"], torch.ones(64, 1))
     assert float(none) == 0.0 and none.requires_grad
@@ -158,8 +160,7 @@ def test_the_trainer_asks_the_shell_beyond_the_box_to_be_empty_too():
 
     model = tiny_model(classes=1)
     model.train()
-    above = torch.tensor([[0.0, 0.0, 3.0]]), torch.tensor([[0.0, 1.0, 0.0]])  # never enters the box
-    outputs = model(*above)
+    outputs = model(*ABOVE_THE_BOX)
     assert float(outputs["accumulation"][0]) > 0.05
     settings = TrainSettings.from_options({"background_opacity": 1.0})
     terms = loss_terms(settings, model, outputs, torch.zeros(1, 3), torch.zeros(1, 1), None, None)
