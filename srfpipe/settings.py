@@ -355,6 +355,9 @@ class TrainSettings(SettingsSection):
     """when the pixels that show a class (dilated by 2 px) are fewer than this share of the training
     pixels, this share of every batch is drawn from them: a small object (a plant under 1 % of
     the frame) would otherwise get a few rays a step"""
+    pixel_jitter: bool = False
+    """true: each training ray passes through a uniformly random point of its pixel instead of its
+    centre"""
     background_opacity: float | None = None
     """weight of the loss on the opacity along the rays (the box and the shell beyond it) whose
     pixel shows none of the classes on an empty background (null: chosen from the data, see the

@@ -457,3 +457,40 @@ def test_on_an_empty_backdrop_the_focus_finds_the_object_in_frames_without_masks
     assert float((image[-200:] == 0).float().mean()) >= 0.5  # of the 200 focused rays, the masks' 100 (+ 1 in 10)
     diluted = sample_batch(data, views, 2000, step_generator(0, 5), torch.device("cpu"), [matter], 0.1)[2]
     assert float((diluted[-200:] == 0).float().mean()) < 0.2  # one pool of all: 1 in 10 is of the masked frame
+
+
+def test_pixel_jitter_sends_each_training_ray_through_a_random_point_of_its_own_pixel():
+    """train.pixel_jitter: a pixel is the mean over its footprint, so the ray may pass anywhere in it
+    (uniformly), never outside it; off, every ray passes through its pixel's centre. The pixels drawn
+    are the same either way, and a seed repeats its rays."""
+    from types import SimpleNamespace
+
+    from srfpipe.srf.trainer import sample_batch, step_generator
+
+    n, h, w = 3, 40, 50
+    fx, fy, cx, cy = 40.0, 45.0, 25.0, 20.0
+    data = SimpleNamespace(multihot=None, height=h, width=w, labelled=None, backdrop=None,
+                           images=torch.randint(0, 255, (n, h, w, 3), dtype=torch.uint8),
+                           poses_scene=torch.eye(4).repeat(n, 1, 1), intrinsics=torch.tensor([[fx, fy, cx, cy]] * n))
+    views = np.arange(n)
+
+    def crossings(pixel_jitter):
+        _, directions, _, rgb, _ = sample_batch(data, views, 4000, step_generator(0, 7), torch.device("cpu"),
+                                                pixel_jitter=pixel_jitter)
+        # identity poses: the camera frame is the world frame, so the ray meets the image plane here
+        return directions[:, 0] / directions[:, 2] * fx + cx, directions[:, 1] / directions[:, 2] * fy + cy, rgb
+
+    x0, y0, rgb0 = crossings(False)
+    x, y, rgb = crossings(True)
+    assert torch.equal(rgb, rgb0)  # the same pixels
+    u, v = torch.floor(x0), torch.floor(y0)
+    assert torch.allclose(x0 - u, torch.full_like(x0, 0.5), atol=1e-4)
+    assert torch.allclose(y0 - v, torch.full_like(y0, 0.5), atol=1e-4)
+    a, b = x - u, y - v  # where in its own pixel each jittered ray passes
+    assert float(a.min()) >= -1e-4 and float(a.max()) <= 1 + 1e-4
+    assert float(b.min()) >= -1e-4 and float(b.max()) <= 1 + 1e-4
+    for offset in (a, b):  # uniform: each quarter of the pixel gets about a quarter of the rays
+        counts = torch.histc(offset.clamp(0, 1), bins=4, min=0, max=1)
+        assert float(counts.min()) > 0.2 * offset.numel()
+    again = crossings(True)
+    assert torch.equal(again[0], x) and torch.equal(again[1], y)

@@ -64,7 +64,7 @@ def capacity_for(count: int, limit: int) -> int:
 class GraphedSteps:
     """The part of a training step from the drawn pixels to Adam's update, captured and replayed.
 
-    `step(image, v, u, jitter)` runs one step on those pixels (tensors of any device) and
+    `step(image, v, u, jitter, within)` runs one step on those pixels (rays through the points `within`) (tensors of any device) and
     returns (terms, loss, outputs): tensors the next step overwrites.
     """
 
@@ -85,6 +85,7 @@ class GraphedSteps:
         self.v = torch.zeros(n, dtype=torch.long, device=device)
         self.u = torch.zeros(n, dtype=torch.long, device=device)
         self.jitter = torch.zeros(n, device=device)
+        self.within = torch.full((n, 2), 0.5, device=device)  # the point of each pixel its ray passes
         for group in run.optimizer.param_groups if self.cuda else []:
             # read by the captured Adam from device memory, so a new value needs no new graph
             group["lr"] = torch.tensor(float(group["lr"]), device=device)
@@ -102,12 +103,16 @@ class GraphedSteps:
         self.captures = 0
         self.result = None
 
-    def step(self, image, v, u, jitter):
+    def step(self, image, v, u, jitter, within=0.5):
         from srfpipe.device import page_locked
 
         for static, drawn in ((self.image, image), (self.v, v), (self.u, u), (self.jitter, jitter)):
             # page-locked: from pageable memory each copy would wait for the steps queued before it
             static.copy_(page_locked(drawn, static.device), non_blocking=True)
+        if isinstance(within, float):
+            self.within.fill_(within)
+        else:
+            self.within.copy_(page_locked(within, self.within.device), non_blocking=True)
         if self.warm < WARMUP_STEPS or not self.cuda:
             return self._eager_step()
         if self.graph is None:
@@ -198,7 +203,7 @@ class GraphedSteps:
         from srfpipe.srf.trainer import loss_terms, pixel_batch, sum_terms
 
         run, model = self.run, self.run.model
-        origins, directions, rgb, labels = pixel_batch(self.data, self.image, self.v, self.u)
+        origins, directions, rgb, labels = pixel_batch(self.data, self.image, self.v, self.u, self.within)
         if run.cameras is not None:
             origins, directions = run.cameras(self.image, origins, directions)
         valid = None if run.labelled_frames is None else run.labelled_frames[self.image]

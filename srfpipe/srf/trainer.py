@@ -187,14 +187,17 @@ def object_pixels(data, train_views, share: float, dilation_px: int = 2):
     return pools
 
 
-def sample_batch(data, train_views, count: int, generator, device, focus=None, focus_share: float = 0.0):
+def sample_batch(data, train_views, count: int, generator, device, focus=None, focus_share: float = 0.0,
+                 pixel_jitter: bool = False):
     """A random batch of pixels from the training views: rays, target rgb, multi-hot labels.
 
     With `focus` (object_pixels' pools), round(focus_share * count) of the pixels are drawn from
-    them, an equal part from each.
+    them, an equal part from each. `pixel_jitter`: each ray passes through a random point of its
+    pixel (`draw_within`), else through its centre.
     """
     image, v, u = draw_pixels(data, train_views, count, generator, focus, focus_share)
-    origins, directions, rgb, labels = pixel_batch(data, image, v, u)
+    within = draw_within(count, generator, data.images.device) if pixel_jitter else 0.5
+    origins, directions, rgb, labels = pixel_batch(data, image, v, u, within)
     return (origins.to(device), directions.to(device), image.to(device), rgb.to(device),
             None if labels is None else labels.to(device))
 
@@ -222,13 +225,27 @@ def draw_pixels(data, train_views, count: int, generator, focus=None, focus_shar
     return image, v, u
 
 
-def pixel_batch(data, image, v, u):
-    """Rays, target rgb in [0, 1] and multi-hot labels of pixels (image, v, u), on the data's device."""
+def draw_within(count: int, generator, device):
+    """(count, 2) uniform points inside pixels, (0, 0) to (1, 1) from a pixel's corner.
+
+    Why: a pixel holds the mean of the light over its footprint (a camera's sensor element, or
+    INTER_AREA's box when images are downscaled), and evaluate renders that mean (its supersampled
+    rays); a ray through the centre alone asks the field for the centre's value, which at a
+    silhouette each view's pixel grid mixes differently.
+    """
+    from srfpipe.device import rand
+
+    return rand((count, 2), generator, device)
+
+
+def pixel_batch(data, image, v, u, within=0.5):
+    """Rays through the points `within` (R, 2) of pixels (image, v, u) (0.5: their centres), target rgb
+    in [0, 1] and multi-hot labels, on the data's device."""
     import torch
 
     from srfpipe.srf.data import rays_for_pixels
 
-    origins, directions = rays_for_pixels(data.poses_scene[image], data.intrinsics[image], u, v)
+    origins, directions = rays_for_pixels(data.poses_scene[image], data.intrinsics[image], u, v, within)
     rgb = data.images[image, v, u].float() / 255.0
     labels = (data.multihot[image, v, u].float() if data.multihot is not None
               else torch.zeros(image.shape[0], 0, device=data.images.device))
@@ -530,9 +547,10 @@ def training_step(run: TrainingRun, step: int):
             group["lr"] = lr
     if run.graphed is not None:
         image, v, u = draw_pixels(run.data, run.train_views, s.rays_per_batch, generator, run.focus, s.object_rays)
+        within = draw_within(s.rays_per_batch, generator, "cpu") if s.pixel_jitter else 0.5
         jitter = rand(s.rays_per_batch, generator, "cpu")
         try:
-            terms, loss, outputs = run.graphed.step(image, v, u, jitter)
+            terms, loss, outputs = run.graphed.step(image, v, u, jitter, within)
             run.watch.update(terms, loss)
             return terms, loss, outputs
         except RuntimeError as error:  # a capture CUDA refused: this run goes on step by step
@@ -544,11 +562,11 @@ def training_step(run: TrainingRun, step: int):
             log.debug("the failed capture", exc_info=True)
             run.graphed.stop()
             run.graphed = None
-        origins, directions, rgb, labels = (t.to(run.device) for t in pixel_batch(run.data, image, v, u))
+        origins, directions, rgb, labels = (t.to(run.device) for t in pixel_batch(run.data, image, v, u, within))
         image, jitter = image.to(run.device), jitter.to(run.device)
     else:
         origins, directions, image, rgb, labels = sample_batch(run.data, run.train_views, s.rays_per_batch, generator,
-                                                               run.device, run.focus, s.object_rays)
+                                                               run.device, run.focus, s.object_rays, s.pixel_jitter)
         jitter = rand(s.rays_per_batch, generator, run.device)
     if run.cameras is not None:  # outside autocast: rays in full precision
         origins, directions = run.cameras(image, origins, directions)
