@@ -64,8 +64,9 @@ def capacity_for(count: int, limit: int) -> int:
 class GraphedSteps:
     """The part of a training step from the drawn pixels to Adam's update, captured and replayed.
 
-    `step(image, v, u, jitter, within)` runs one step on those pixels (rays through the points `within`) (tensors of any device) and
-    returns (terms, loss, outputs): tensors the next step overwrites.
+    `step(image, v, u, jitter, within)` runs one step on those pixels (tensors of any device; rays
+    through the points `within` of their pixels) and returns (terms, loss, outputs): tensors the
+    next step overwrites.
     """
 
     def __init__(self, run):
@@ -109,9 +110,7 @@ class GraphedSteps:
         for static, drawn in ((self.image, image), (self.v, v), (self.u, u), (self.jitter, jitter)):
             # page-locked: from pageable memory each copy would wait for the steps queued before it
             static.copy_(page_locked(drawn, static.device), non_blocking=True)
-        if isinstance(within, float):
-            self.within.fill_(within)
-        else:
+        if not isinstance(within, float):  # a float is the centres (0.5), which the buffer holds from the start
             self.within.copy_(page_locked(within, self.within.device), non_blocking=True)
         if self.warm < WARMUP_STEPS or not self.cuda:
             return self._eager_step()
