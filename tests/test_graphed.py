@@ -159,5 +159,7 @@ def test_training_seconds_count_the_devices_work_not_only_its_queuing(scene, dev
     start = time.perf_counter()
     trainer.run_steps(run, [progress, MetricsLog(None, progress), TimeBudget()])
     wall = time.perf_counter() - start
-    assert run.step > 5 and 3.0 <= run.seconds <= wall
+    # Steps, not seconds, vary with the host's load (CI once managed 4 in the 3 s, here 260): the
+    # clock is what is checked, so a step or two is enough.
+    assert run.step >= 2 and 3.0 <= run.seconds <= wall
     assert run.seconds > 0.85 * wall, (run.seconds, wall, run.step)
