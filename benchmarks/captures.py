@@ -27,7 +27,8 @@ measured at: `reference` in its entry; the plant's thin_* keys are those.
 Writes benchmarks/results/captures.json (per scene, and the `panel` table the issue names: psnr,
 ssim, psnr_object, miou_classes, train_view_psnr, bounds_source, steps, masks_miou_classes (the masks'
 own class mIoU against ground truth on the training views: the ceiling a field that learns from
-them rarely passes; `--masks-only` measures it without training), and nerfacto's and
+them rarely passes; `--masks-only` measures it without training, and also composited at
+`segmentation.threshold` 0.25 to 0.5: miou_masks_gt_classes_by_threshold), and nerfacto's and
 srfpipe's peers.json numbers where that file has the capture) and captures.png (per scene, the
 first held-out view: render | semantics | depth). `--quick`: 60 s of training and no COLMAP
 refinement of the fox. A run of some scenes keeps the others' last measurement.
@@ -345,6 +346,35 @@ def mask_ceiling(results: Path, scene: dict) -> dict:
     return mask_agreement(data, train)
 
 
+MASK_THRESHOLDS = (0.25, 0.3, 0.35, 0.4, 0.45, 0.5)
+
+
+def mask_ceiling_by_threshold(results: Path, scene: dict) -> dict:
+    """The masks' ceiling (mIoU of the classes against the truth, labelled training views) had they
+    been composited at each of MASK_THRESHOLDS (`segmentation.threshold`) instead of the built one."""
+    import zarr
+
+    from srfpipe.segment.composite import label_image
+    from srfpipe.srf import metrics
+    from srfpipe.srf.data import load_posed_images, remap_ground_truth, split_views
+
+    data = load_posed_images(results / "images.zarr", results / "labels.zarr")
+    if data.gt_label is None or not data.classes:
+        return {}
+    train, _ = split_views(data.count, holdout_every(scene))
+    views = train if data.labelled is None else train[data.labelled[train]]
+    masks = [zarr.open_group(results / "masks" / f"{prompt}.zarr", mode="r")["probability"] for prompt in data.classes]
+    values = list(range(1, len(data.classes) + 1))
+    confusion = {t: np.zeros((len(values) + 1,) * 2, np.int64) for t in MASK_THRESHOLDS}
+    for index in views:
+        probability = np.stack([np.asarray(m[int(index)]) for m in masks]).astype(np.float32) / 255.0
+        truth = remap_ground_truth(data.gt_label[index], data.gt_classes, data.classes)
+        for t in MASK_THRESHOLDS:
+            confusion[t] += metrics.confusion(label_image(probability, [t] * len(values), values), truth, len(values) + 1)
+    return {"miou_masks_gt_classes_by_threshold": {
+        f"{t:g}": float(np.nanmean(metrics.iou_from_confusion(c)[1:])) for t, c in confusion.items()}}
+
+
 def measure_masks_only(workdir: Path, names: list[str], path: Path, extra: tuple) -> int:
     """`--masks-only`: build each capture up to labels.zarr (no training) and add the masks' ceiling
     (miou_masks_gt...) to its entry in captures.json, keeping everything else."""
@@ -355,10 +385,13 @@ def measure_masks_only(workdir: Path, names: list[str], path: Path, extra: tuple
     report = json.loads(path.read_text())
     for name, scene in scenes.items():
         ceiling = mask_ceiling(workdir / "results" / name, scene)
-        report["scenes"].setdefault(name, {}).update(ceiling)
+        by_threshold = mask_ceiling_by_threshold(workdir / "results" / name, scene)
+        report["scenes"].setdefault(name, {}).update(ceiling, **by_threshold)
         if ceiling:
             print(f"{name:14} masks against the truth: mIoU of the classes {ceiling['miou_masks_gt_classes']:.3f} "
-                  f"({', '.join(f'{k} {v:.2f}' for k, v in ceiling['iou_masks_gt'].items() if v is not None)})")
+                  f"({', '.join(f'{k} {v:.2f}' for k, v in ceiling['iou_masks_gt'].items() if v is not None)}); "
+                  "composited at " + ", ".join(f"{t} {v:.3f}" for t, v in
+                                              by_threshold["miou_masks_gt_classes_by_threshold"].items()))
     write_result(path, report)
     return refresh_panel(path)
 
