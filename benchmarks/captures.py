@@ -333,9 +333,14 @@ def peers_by_scene() -> dict:
     return peers
 
 
+MASK_THRESHOLDS = (0.25, 0.3, 0.35, 0.4, 0.45, 0.5)
+
+
 def mask_ceiling(results: Path, scene: dict) -> dict:
     """The composited masks of a capture with ground truth against that truth on its labelled training
-    views (`srfpipe.evaluate.mask_agreement`, as evaluate reports it), from labels.zarr alone."""
+    views (`srfpipe.evaluate.mask_agreement`, as evaluate reports it), from labels.zarr alone, and the
+    same mIoU of the classes had they been composited at each of MASK_THRESHOLDS
+    (`segmentation.threshold`) instead of the built one (`miou_masks_gt_classes_by_threshold`)."""
     from srfpipe.evaluate import mask_agreement
     from srfpipe.srf.data import load_posed_images, split_views
 
@@ -343,27 +348,20 @@ def mask_ceiling(results: Path, scene: dict) -> dict:
     if data.gt_label is None or not data.classes:
         return {}
     train, _ = split_views(data.count, holdout_every(scene))
-    return mask_agreement(data, train)
+    return {**mask_agreement(data, train), **mask_ceiling_by_threshold(data, results / "masks", train)}
 
 
-MASK_THRESHOLDS = (0.25, 0.3, 0.35, 0.4, 0.45, 0.5)
-
-
-def mask_ceiling_by_threshold(results: Path, scene: dict) -> dict:
-    """The masks' ceiling (mIoU of the classes against the truth, labelled training views) had they
-    been composited at each of MASK_THRESHOLDS (`segmentation.threshold`) instead of the built one."""
+def mask_ceiling_by_threshold(data, masks_dir: Path, train: np.ndarray) -> dict:
+    """mIoU of the classes against the truth on the labelled training views `train` of `data` (with
+    ground truth), the per-prompt masks in `masks_dir` composited at each of MASK_THRESHOLDS."""
     import zarr
 
     from srfpipe.segment.composite import label_image
     from srfpipe.srf import metrics
-    from srfpipe.srf.data import load_posed_images, remap_ground_truth, split_views
+    from srfpipe.srf.data import remap_ground_truth
 
-    data = load_posed_images(results / "images.zarr", results / "labels.zarr")
-    if data.gt_label is None or not data.classes:
-        return {}
-    train, _ = split_views(data.count, holdout_every(scene))
     views = train if data.labelled is None else train[data.labelled[train]]
-    masks = [zarr.open_group(results / "masks" / f"{prompt}.zarr", mode="r")["probability"] for prompt in data.classes]
+    masks = [zarr.open_group(masks_dir / f"{prompt}.zarr", mode="r")["probability"] for prompt in data.classes]
     values = list(range(1, len(data.classes) + 1))
     confusion = {t: np.zeros((len(values) + 1,) * 2, np.int64) for t in MASK_THRESHOLDS}
     for index in views:
@@ -385,13 +383,12 @@ def measure_masks_only(workdir: Path, names: list[str], path: Path, extra: tuple
     report = json.loads(path.read_text())
     for name, scene in scenes.items():
         ceiling = mask_ceiling(workdir / "results" / name, scene)
-        by_threshold = mask_ceiling_by_threshold(workdir / "results" / name, scene)
-        report["scenes"].setdefault(name, {}).update(ceiling, **by_threshold)
+        report["scenes"].setdefault(name, {}).update(ceiling)
         if ceiling:
             print(f"{name:14} masks against the truth: mIoU of the classes {ceiling['miou_masks_gt_classes']:.3f} "
                   f"({', '.join(f'{k} {v:.2f}' for k, v in ceiling['iou_masks_gt'].items() if v is not None)}); "
                   "composited at " + ", ".join(f"{t} {v:.3f}" for t, v in
-                                              by_threshold["miou_masks_gt_classes_by_threshold"].items()))
+                                              ceiling["miou_masks_gt_classes_by_threshold"].items()))
     write_result(path, report)
     return refresh_panel(path)
 

@@ -65,8 +65,8 @@ class GraphedSteps:
     """The part of a training step from the drawn pixels to Adam's update, captured and replayed.
 
     `step(image, v, u, jitter, within)` runs one step on those pixels (tensors of any device; rays
-    through the points `within` of their pixels) and returns (terms, loss, outputs): tensors the
-    next step overwrites.
+    through the points `within` of their pixels: (n, 2) in [0, 1), or one number for all, 0.5 the
+    centres) and returns (terms, loss, outputs): tensors the next step overwrites.
     """
 
     def __init__(self, run):
@@ -110,7 +110,9 @@ class GraphedSteps:
         for static, drawn in ((self.image, image), (self.v, v), (self.u, u), (self.jitter, jitter)):
             # page-locked: from pageable memory each copy would wait for the steps queued before it
             static.copy_(page_locked(drawn, static.device), non_blocking=True)
-        if not isinstance(within, float):  # a float is the centres (0.5), which the buffer holds from the start
+        if isinstance(within, (int, float)):  # one point for every pixel (0.5: the centres); a device fill
+            self.within.fill_(float(within))
+        else:
             self.within.copy_(page_locked(within, self.within.device), non_blocking=True)
         if self.warm < WARMUP_STEPS or not self.cuda:
             return self._eager_step()
