@@ -30,8 +30,8 @@ own class mIoU against ground truth on the training views: the ceiling a field t
 them rarely passes; `--masks-only` measures it without training, and also composited at
 `segmentation.threshold` 0.25 to 0.5: miou_masks_gt_classes_by_threshold), and nerfacto's and
 srfpipe's peers.json numbers where that file has the capture) and captures.png (per scene, the
-first held-out view: render | semantics | depth). `--quick`: 60 s of training and no COLMAP
-refinement of the fox. A run of some scenes keeps the others' last measurement.
+first held-out view: render | semantics | depth; each scene's row in captures_rows/). `--quick`: 60 s of
+training and no COLMAP refinement of the fox. A run of some scenes keeps the others' last measurement.
 """
 
 from __future__ import annotations
@@ -274,10 +274,14 @@ def reference_report(workdir: Path, name: str) -> dict:
 
 
 def montage(results: Path, names: list[str], path: Path) -> None:
-    """First held-out render of each scene, top row only (render | semantics | depth), stacked."""
+    """First held-out render of each scene, top row only (render | semantics | depth), stacked.
+
+    Each scene's row is kept beside the figure (`<figure>_rows/NAME.png`) and the figure is stacked
+    from those rows in PANEL's order: a run of some scenes replaces their rows and keeps the others'."""
     import cv2
 
-    rows = []
+    rows_dir = path.with_name(path.stem + "_rows")
+    rows_dir.mkdir(exist_ok=True)
     for name in names:
         renders = sorted((results / name / "eval" / "renders").glob("*.png"))
         if not renders:
@@ -287,7 +291,9 @@ def montage(results: Path, names: list[str], path: Path) -> None:
         scale = 240 / top.shape[0]
         top = cv2.resize(top, (int(top.shape[1] * scale), 240), interpolation=cv2.INTER_AREA)
         cv2.putText(top, name, (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 2, cv2.LINE_AA)
-        rows.append(top)
+        cv2.imwrite(str(rows_dir / f"{name}.png"), top)
+    order = list(PANEL) + sorted(p.stem for p in rows_dir.glob("*.png") if p.stem not in PANEL)
+    rows = [cv2.imread(str(rows_dir / f"{name}.png")) for name in order if (rows_dir / f"{name}.png").exists()]
     if not rows:
         return
     width = max(r.shape[1] for r in rows)
