@@ -164,4 +164,14 @@ def write_result(path: Path, report: dict) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(report, indent=1) + "\n")
     print(f"wrote {path}")
+    if path.resolve().parent == RESULTS.resolve():
+        refresh_readme()
     return path
+
+
+def refresh_readme() -> None:
+    """Re-write the README's headline table from the results (scripts/readme_numbers.py), so a
+    benchmark's new numbers reach it; a failure there is reported, not fatal to the benchmark."""
+    done = subprocess.run([sys.executable, str(REPO / "scripts" / "readme_numbers.py")], capture_output=True, text=True)
+    if done.returncode != 0:
+        print(f"README.md's headline table not refreshed: {done.stderr.strip().splitlines()[-1:]}", file=sys.stderr)

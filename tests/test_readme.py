@@ -1,6 +1,8 @@
 """The README stays a newcomer's page: short, no commit hashes, links that resolve, and the test command CI runs."""
 
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -44,3 +46,11 @@ def test_readme_links_resolve():
         if not (REPO / path).exists():
             missing.append(target)
     assert not missing, f"README.md links to files that do not exist: {missing}"
+
+
+def test_headline_numbers_are_read_from_the_benchmark_results():
+    # the table is written by scripts/readme_numbers.py from benchmarks/results/*.json; a benchmark
+    # re-run that changes a number, or a hand edit of the table, leaves the README stale
+    check = subprocess.run([sys.executable, str(REPO / "scripts" / "readme_numbers.py"), "--check"],
+                           capture_output=True, text=True)
+    assert check.returncode == 0, check.stderr
