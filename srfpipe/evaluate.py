@@ -205,8 +205,7 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
     import cv2
 
     from srfpipe.artifacts import atomic_directory, meta, open_artifact
-    from srfpipe.srf import metrics
-    from srfpipe.srf.data import remap_ground_truth, split_views
+    from srfpipe.srf.data import split_views
 
     out = Path(out)
     if data.label is None:
@@ -223,9 +222,6 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
             f"{srf}: trained with holdout_every={field.attrs.get('holdout_every')}, evaluate asks for {holdout}"
         )
     train, heldout = split_views(data.count, holdout)
-    train_chosen = train_view_choice(train, settings.train_views)
-    unlabelled = train[:0] if data.labelled is None else train[~data.labelled[train]]
-    unlabelled_chosen = train_view_choice(unlabelled, settings.unlabelled_views)
     supersample = default_supersample(data.width, data.height, settings.supersample)
 
     def render_view(index, training=False, **render_options):
@@ -239,109 +235,174 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
                                 **render_options)
         return rendered, data.images[index].numpy().astype(np.float64) / 255.0
 
-    c = len(data.classes)
-    semantic = c > 0
+    semantic = len(data.classes) > 0
     colours = class_colours(data.classes, meta(open_artifact(labels, stage="composite")))
-    conf = np.zeros((c + 1, c + 1), np.int64)
-    conf_gt = np.zeros((c + 1, c + 1), np.int64) if data.gt_label is not None else None
-    per_view, sq_err, sq_err_obj, obj_pixels = [], 0.0, 0.0, 0
-    significant, floaters = 0.0, 0.0  # samples with weight > 0.03, and those off the ray's surface
-    candidates, kept = 0.0, 0.0  # intervals placed along the rays, and those not skipped as empty
+    scores = HeldoutScores(data)
     with atomic_directory(out) as tmp:
         (tmp / "renders").mkdir()
         for index in heldout:
-            result, target = render_view(index)
-            err = (result["rgb"].astype(np.float64) - target) ** 2
-            sq_err += float(err.sum())
-            if "floater_samples" in result:
-                significant += float(result["significant_samples"].sum())
-                floaters += float(result["floater_samples"].sum())
-            if "candidate_samples" in result:
-                candidates += float(result["candidate_samples"].sum())
-                kept += float(result["kept_samples"].sum())
-            view = {"name": data.names[index], "index": int(index), "psnr": metrics.psnr(result["rgb"], target),
-                    "ssim": metrics.ssim(result["rgb"], target)}
-            pred_label = reference = None
-            if semantic:
-                pred_label = metrics.label_from_probabilities(result["semantic"])
-                reference = data.label[index]
-                if data.labelled is None or data.labelled[index]:  # a frame without masks has no reference
-                    conf += metrics.confusion(pred_label, reference, c + 1)
-                if data.gt_label is not None:
-                    reference = remap_ground_truth(data.gt_label[index], data.gt_classes, data.classes)
-                    conf_gt += metrics.confusion(pred_label, reference, c + 1)
-                objects = reference > 0
-                sq_err_obj += float(err[objects].sum())
-                obj_pixels += int(objects.sum())
-                view["psnr_object"] = metrics.psnr(result["rgb"], target, objects)
-            per_view.append(view)
-            _write_figure(tmp / "renders" / f"{data.names[index]}.png", result, target, pred_label, reference,
+            rendered, target = render_view(index)
+            pred_label, reference = scores.add(index, rendered, target)
+            _write_figure(tmp / "renders" / f"{data.names[index]}.png", rendered, target, pred_label, reference,
                           colours, cv2)
-        n_values = len(heldout) * data.height * data.width * 3
-        result = {
-            "views": len(heldout), "holdout_every": holdout, "supersample": supersample, "classes": list(data.classes),
-            "psnr": metrics.psnr_from_mse(sq_err / n_values),
-            "ssim": float(np.mean([v["ssim"] for v in per_view])),
-        }
-        # the generalization check: the same renders of a few training views (numbers only)
-        train_rgb, train_target = [], []
-        for index in train_chosen:  # through the cameras the field was trained with
-            rendered, target = render_view(index, training=True)
-            train_rgb.append(rendered["rgb"])
-            train_target.append(target)
-        train_psnr = pooled_psnr(train_rgb, train_target) if train_rgb else None
-        gap = train_psnr - result["psnr"] if train_psnr is not None else None
-        result.update({"train_view_names": [data.names[i] for i in train_chosen],
-                       "train_view_psnr": train_psnr, "generalization_gap_db": gap,
-                       "overfit": bool(gap is not None and gap > GENERALIZATION_GAP_DB)})
-        if result["overfit"] and (remedy := overfit_remedy(field.attrs.get("config", {}), data.poses_scene.numpy(),
-                                                        data.background_empty)):
-            result["overfit_remedy"] = remedy
-        if train_rgb and getattr(field, "has_appearance", False):
-            # the same training views with the appearance a new view at their pose gets (the nearest
-            # *other* training image's): the part of the gap that is each image's own embedding
-            # (exposure, white balance, and whatever else it absorbed), apart from the geometry's
-            borrowed = [render_view(index, training=True, exclude_view=int(index))[0]["rgb"] for index in train_chosen]
-            result["train_view_psnr_borrowed_appearance"] = pooled_psnr(borrowed, train_target)
-            result["appearance_gap_db"] = train_psnr - result["train_view_psnr_borrowed_appearance"]
-        if significant:
-            # fog and floaters: of the samples that carry weight (> 0.03), the share that lies
-            # off the surface each ray sees (srfpipe.srf.model.FLOATER_CELLS from its median depth)
-            result["floater_fraction"] = floaters / significant
-            result["significant_samples_per_ray"] = significant / (len(heldout) * data.height * data.width)
-        if candidates:
-            # empty space costs no samples: the share of the intervals placed along the held-out
-            # rays that the occupancy grid skipped (the field is never evaluated there)
-            rays = len(heldout) * data.height * data.width
-            result["samples_skipped_fraction"] = 1.0 - kept / candidates
-            result["samples_per_ray"] = kept / rays
-            result["candidate_samples_per_ray"] = candidates / rays
+        result = {"views": len(heldout), "holdout_every": holdout, "supersample": supersample,
+                  "classes": list(data.classes), **scores.colour_metrics()}
+        result.update(generalization_check(field, data, render_view, train_view_choice(train, settings.train_views),
+                                           result["psnr"]))
+        result.update(scores.sample_metrics())
         if semantic:
-            result["psnr_object"] = metrics.psnr_from_mse(sq_err_obj / (obj_pixels * 3)) if obj_pixels else None
-            result.update(_iou_metrics(conf, ["background"] + data.classes, ""))
-            if conf_gt is not None:
-                result.update(_iou_metrics(conf_gt, ["background"] + data.classes, "_gt"))
+            result.update(scores.semantic_metrics())
+            if data.gt_label is not None:
                 result.update(mask_agreement(data, train))
             result["labelled_frames"] = int(data.count if data.labelled is None else data.labelled.sum())
-            if len(unlabelled_chosen) and conf_gt is not None:
-                # sparse labels: the training views that had no mask, against the capture's truth
-                conf_unlabelled = np.zeros_like(conf_gt)
-                for index in unlabelled_chosen:
-                    rendered, _ = render_view(index)
-                    reference = remap_ground_truth(data.gt_label[index], data.gt_classes, data.classes)
-                    conf_unlabelled += metrics.confusion(metrics.label_from_probabilities(rendered["semantic"]),
-                                                         reference, c + 1)
-                result["unlabelled_view_names"] = [data.names[i] for i in unlabelled_chosen]
-                result.update(_iou_metrics(conf_unlabelled, ["background"] + data.classes, "_unlabelled_gt"))
-            elif len(unlabelled_chosen):
-                log.info("%d training views had no masks; the capture has no ground truth to score them on",
-                         len(unlabelled))
+            result.update(unlabelled_view_scores(data, render_view, train, settings.unlabelled_views))
         result.update({"label_source": str(labels), "srf": str(srf), "train_seconds": field.attrs.get("train_seconds"),
-                       "per_view": per_view})
+                       "per_view": scores.per_view})
         (tmp / "metrics.json").write_text(json.dumps(_clean(result), indent=2))
         (tmp / "metrics.html").write_text(metrics_html(_clean(result), title=f"held-out views of {srf}"))
         if curves is not None and len(curves[0].get("step", [])):
             (tmp / "training_curve.svg").write_text(training_curve_svg(*curves))
+    _log_result(result, srf, semantic)
+    return result
+
+
+class HeldoutScores:
+    """Sums over the held-out views of `data` (`PosedImages`), one `add` a view: squared error over
+    all pixels and over the object pixels, the samples' statistics, and the confusion of the
+    predicted labels against the composited labels and against the ground truth."""
+
+    def __init__(self, data):
+        self.data = data
+        self.labels = len(data.classes) + 1
+        self.per_view = []
+        self.pixels = 0
+        self.sq_err, self.sq_err_object, self.object_pixels = 0.0, 0.0, 0
+        self.significant, self.floaters = 0.0, 0.0  # samples with weight > 0.03, and those off the ray's surface
+        self.candidates, self.kept = 0.0, 0.0  # intervals placed along the rays, and those not skipped as empty
+        self.confusion = np.zeros((self.labels, self.labels), np.int64)
+        self.confusion_gt = np.zeros_like(self.confusion) if data.gt_label is not None else None
+
+    def add(self, index: int, rendered: dict, target: np.ndarray):
+        """Score view `index`'s render against its image; the predicted and reference label images
+        for its figure (None, None without classes)."""
+        from srfpipe.srf import metrics
+        from srfpipe.srf.data import remap_ground_truth
+
+        data = self.data
+        err = (rendered["rgb"].astype(np.float64) - target) ** 2
+        self.sq_err += float(err.sum())
+        self.pixels += err.shape[0] * err.shape[1]
+        if "floater_samples" in rendered:
+            self.significant += float(rendered["significant_samples"].sum())
+            self.floaters += float(rendered["floater_samples"].sum())
+        if "candidate_samples" in rendered:
+            self.candidates += float(rendered["candidate_samples"].sum())
+            self.kept += float(rendered["kept_samples"].sum())
+        view = {"name": data.names[index], "index": int(index), "psnr": metrics.psnr(rendered["rgb"], target),
+                "ssim": metrics.ssim(rendered["rgb"], target)}
+        self.per_view.append(view)
+        if self.labels == 1:
+            return None, None
+        pred_label = metrics.label_from_probabilities(rendered["semantic"])
+        reference = data.label[index]
+        if data.labelled is None or data.labelled[index]:  # a frame without masks has no reference
+            self.confusion += metrics.confusion(pred_label, reference, self.labels)
+        if self.confusion_gt is not None:
+            reference = remap_ground_truth(data.gt_label[index], data.gt_classes, data.classes)
+            self.confusion_gt += metrics.confusion(pred_label, reference, self.labels)
+        objects = reference > 0
+        self.sq_err_object += float(err[objects].sum())
+        self.object_pixels += int(objects.sum())
+        view["psnr_object"] = metrics.psnr(rendered["rgb"], target, objects)
+        return pred_label, reference
+
+    def colour_metrics(self) -> dict:
+        """psnr (one mean squared error over every held-out pixel) and ssim (the views' mean)."""
+        from srfpipe.srf import metrics
+
+        return {"psnr": metrics.psnr_from_mse(self.sq_err / (self.pixels * 3)),
+                "ssim": float(np.mean([v["ssim"] for v in self.per_view]))}
+
+    def sample_metrics(self) -> dict:
+        result = {}
+        if self.significant:
+            # fog and floaters: of the samples that carry weight (> 0.03), the share that lies
+            # off the surface each ray sees (srfpipe.srf.model.FLOATER_CELLS from its median depth)
+            result["floater_fraction"] = self.floaters / self.significant
+            result["significant_samples_per_ray"] = self.significant / self.pixels
+        if self.candidates:
+            # empty space costs no samples: the share of the intervals placed along the held-out
+            # rays that the occupancy grid skipped (the field is never evaluated there)
+            result["samples_skipped_fraction"] = 1.0 - self.kept / self.candidates
+            result["samples_per_ray"] = self.kept / self.pixels
+            result["candidate_samples_per_ray"] = self.candidates / self.pixels
+        return result
+
+    def semantic_metrics(self) -> dict:
+        """psnr_object and the IoU keys against the composited labels (and `_gt`, the ground truth)."""
+        from srfpipe.srf import metrics
+
+        names = ["background"] + list(self.data.classes)
+        result = {"psnr_object": metrics.psnr_from_mse(self.sq_err_object / (self.object_pixels * 3))
+                  if self.object_pixels else None}
+        result.update(_iou_metrics(self.confusion, names, ""))
+        if self.confusion_gt is not None:
+            result.update(_iou_metrics(self.confusion_gt, names, "_gt"))
+        return result
+
+
+def generalization_check(field, data, render_view, views, heldout_psnr: float) -> dict:
+    """The training views `views` rendered like the held-out ones (through the cameras the field
+    was trained with): train_view_psnr, generalization_gap_db, overfit (and overfit_remedy where
+    one applies); for a field with per-image appearance, the part of the gap that is each training
+    image's own embedding (appearance_gap_db)."""
+    rendered, targets = [], []
+    for index in views:
+        image, target = render_view(index, training=True)
+        rendered.append(image["rgb"])
+        targets.append(target)
+    train_psnr = pooled_psnr(rendered, targets) if rendered else None
+    gap = train_psnr - heldout_psnr if train_psnr is not None else None
+    result = {"train_view_names": [data.names[i] for i in views], "train_view_psnr": train_psnr,
+              "generalization_gap_db": gap, "overfit": bool(gap is not None and gap > GENERALIZATION_GAP_DB)}
+    if result["overfit"] and (remedy := overfit_remedy(field.attrs.get("config", {}), data.poses_scene.numpy(),
+                                                    data.background_empty)):
+        result["overfit_remedy"] = remedy
+    if rendered and getattr(field, "has_appearance", False):
+        # the same training views with the appearance a new view at their pose gets (the nearest
+        # *other* training image's): the part of the gap that is each image's own embedding
+        # (exposure, white balance, and whatever else it absorbed), apart from the geometry's
+        borrowed = [render_view(index, training=True, exclude_view=int(index))[0]["rgb"] for index in views]
+        result["train_view_psnr_borrowed_appearance"] = pooled_psnr(borrowed, targets)
+        result["appearance_gap_db"] = train_psnr - result["train_view_psnr_borrowed_appearance"]
+    return result
+
+
+def unlabelled_view_scores(data, render_view, train, count: int) -> dict:
+    """Sparse labels: `count` of the training views that had no masks, against the capture's ground
+    truth (unlabelled_view_names and the `_unlabelled_gt` IoU keys); {} when every view had masks
+    or the capture has no ground truth."""
+    from srfpipe.srf import metrics
+    from srfpipe.srf.data import remap_ground_truth
+
+    unlabelled = train[:0] if data.labelled is None else train[~data.labelled[train]]
+    chosen = train_view_choice(unlabelled, count)
+    if not len(chosen):
+        return {}
+    if data.gt_label is None:
+        log.info("%d training views had no masks; the capture has no ground truth to score them on", len(unlabelled))
+        return {}
+    labels = len(data.classes) + 1
+    confusion = np.zeros((labels, labels), np.int64)
+    for index in chosen:
+        rendered, _ = render_view(index)
+        reference = remap_ground_truth(data.gt_label[index], data.gt_classes, data.classes)
+        confusion += metrics.confusion(metrics.label_from_probabilities(rendered["semantic"]), reference, labels)
+    return {"unlabelled_view_names": [data.names[i] for i in chosen],
+            **_iou_metrics(confusion, ["background"] + list(data.classes), "_unlabelled_gt")}
+
+
+def _log_result(result: dict, srf, semantic: bool) -> None:
     log.info("psnr %.2f ssim %.3f%s", result["psnr"], result["ssim"],
              f" miou {result['miou']:.3f}" if semantic else " (no classes: no IoU)")
     if result["overfit"]:
@@ -351,7 +412,6 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
         log.warning("%s: fits the training views, not new ones: training views %.1f dB, held-out %.1f dB "
                     "(gap %.1f dB > %g)%s", srf, result["train_view_psnr"], result["psnr"],
                     result["generalization_gap_db"], GENERALIZATION_GAP_DB, "".join(f"; {n}" for n in notes))
-    return result
 
 
 def mask_agreement(data, train) -> dict:
