@@ -434,57 +434,14 @@ def distill(field: SemanticField, out_path: str | Path, options: dict | None = N
         levels = [_create(pyramid, f"s{k}", (1 + n_c,) + s, cb3, "uint8", ("c", "z", "y", "x"), 0)
                   for k, s in enumerate(shapes)]
 
-        # pass 1
-        leaf_codes, leaf_classes, counts = [], [], np.zeros(1 + n_c, dtype=np.int64)
-        for zyx in tqdm(list(grid.bricks(brick)), desc="distill bricks", disable=not progress, unit="brick"):
-            out = distill_brick(field, grid, zyx, options, thresholds)
-            prob_u8 = np.rint(out["probability"] * 255).astype(np.uint8)
-            occ = out["occupancy"].astype(np.uint8)
-            cls_occ = out["class_occupancy"].astype(np.uint8)
-            arrays["density"][zyx] = out["density"]
-            arrays["occupancy"][zyx] = occ
-            arrays["probability"][(slice(None),) + zyx] = prob_u8
-            arrays["class_occupancy"][(slice(None),) + zyx] = cls_occ
-            levels[0][(slice(None),) + zyx] = np.concatenate([occ[None], cls_occ])
-            counts[0] += int(occ.sum())
-            counts[1:] += cls_occ.sum(axis=(1, 2, 3), dtype=np.int64)
-            kji = np.argwhere(occ)
-            if len(kji):
-                offset = np.array([s.start for s in zyx])
-                leaf_codes.append(morton_encode((kji + offset)[:, ::-1]))
-                leaf_classes.append(leaf_class(prob_u8, cls_occ.astype(bool))[tuple(kji.T)])
-
-        # pass 2
-        distance = _create(group, "distance", (len(dist_classes),) + grid.shape, cb3, "float32",
-                           ("c", "z", "y", "x"), float(trunc))
-        for d_index, (name, _role) in enumerate(dist_classes):
-            channel = classes.index(name)
-            for zyx in tqdm(list(grid.bricks(brick)), desc=f"distance {name}", disable=not progress, unit="brick"):
-                d = signed_distance_brick(arrays["class_occupancy"], channel, grid, zyx, trunc)
-                if d is not None:
-                    distance[(d_index,) + zyx] = d
-
-        # pass 3
+        leaf_codes, leaf_classes, counts = _write_bricks(field, grid, options, thresholds, arrays, levels, progress)
+        distance = _write_distances(group, arrays["class_occupancy"], grid, classes, dist_classes, brick, trunc,
+                                    progress)
         for k in tqdm(range(1, len(levels)), desc="pyramid", disable=not progress, unit="level"):
             downsample_max(levels[k - 1], levels[k], brick)
         pyramid.attrs["ome"] = multiscales_metadata(grid, len(levels), ["any"] + classes, unit)
-
-        # pass 4: Morton order within each brick differs from global order: sort the leaves once
-        codes = np.concatenate(leaf_codes) if leaf_codes else np.zeros(0, np.uint64)
-        cls_of_leaf = np.concatenate(leaf_classes) if leaf_classes else np.zeros(0, np.int8)
-        order = np.argsort(codes, kind="stable")
-        codes, cls_of_leaf = codes[order], cls_of_leaf[order]
-        octree = group.create_group("octree")
         depth = len(shapes) - 1
-        for level, level_codes in enumerate(octree_levels(codes, depth)):
-            _write_1d(octree, f"level_{level:02d}", level_codes, "uint64")
-        _write_1d(octree, "leaf_class", cls_of_leaf, "int8")
-        octree.attrs["octree"] = {
-            "depth": depth, "root_size_voxels": 1 << depth, "levels": [f"level_{l:02d}" for l in range(depth + 1)],
-            "morton": "21 bits per axis interleaved, x in bit 0, y in bit 1, z in bit 2; voxel (x, y, z) indices",
-            "cell_of_level": "level l cell c covers voxels whose code >> 3*(depth-l) == c",
-            "leaf_class": "class index per leaf (aligned with the last level), -1 when no class passes its threshold",
-        }
+        _write_octree(group, leaf_codes, leaf_classes, depth)
 
         storage = storage_bytes(group, [*arrays.values(), distance, *levels])
         update_attrs(
@@ -521,6 +478,64 @@ def distill(field: SemanticField, out_path: str | Path, options: dict | None = N
              dict(zip(classes, counts[1:].tolist())), storage["bytes_on_disk"] / 1e6, storage["dense_bytes"] / 1e6,
              100 * storage["bytes_on_disk"] / max(storage["dense_bytes"], 1))
     return Path(out_path)
+
+
+def _write_bricks(field, grid, options, thresholds, arrays, levels, progress):
+    """Pass 1: the field queried brick by brick into the voxel arrays and the pyramid's finest
+    level; the occupied voxels' Morton codes and classes (per brick), and the occupied-voxel counts
+    (any, then per class)."""
+    n_c = arrays["probability"].shape[0]
+    leaf_codes, leaf_classes, counts = [], [], np.zeros(1 + n_c, dtype=np.int64)
+    for zyx in tqdm(list(grid.bricks(options["brick"])), desc="distill bricks", disable=not progress, unit="brick"):
+        out = distill_brick(field, grid, zyx, options, thresholds)
+        prob_u8 = np.rint(out["probability"] * 255).astype(np.uint8)
+        occ = out["occupancy"].astype(np.uint8)
+        cls_occ = out["class_occupancy"].astype(np.uint8)
+        arrays["density"][zyx] = out["density"]
+        arrays["occupancy"][zyx] = occ
+        arrays["probability"][(slice(None),) + zyx] = prob_u8
+        arrays["class_occupancy"][(slice(None),) + zyx] = cls_occ
+        levels[0][(slice(None),) + zyx] = np.concatenate([occ[None], cls_occ])
+        counts[0] += int(occ.sum())
+        counts[1:] += cls_occ.sum(axis=(1, 2, 3), dtype=np.int64)
+        kji = np.argwhere(occ)
+        if len(kji):
+            offset = np.array([s.start for s in zyx])
+            leaf_codes.append(morton_encode((kji + offset)[:, ::-1]))
+            leaf_classes.append(leaf_class(prob_u8, cls_occ.astype(bool))[tuple(kji.T)])
+    return leaf_codes, leaf_classes, counts
+
+
+def _write_distances(group, class_occupancy, grid, classes, dist_classes, brick, trunc, progress):
+    """Pass 2: a truncated signed distance field per avoid/reach class (`dist_classes`)."""
+    distance = _create(group, "distance", (len(dist_classes),) + grid.shape, (1,) + (brick,) * 3, "float32",
+                       ("c", "z", "y", "x"), float(trunc))
+    for d_index, (name, _role) in enumerate(dist_classes):
+        channel = classes.index(name)
+        for zyx in tqdm(list(grid.bricks(brick)), desc=f"distance {name}", disable=not progress, unit="brick"):
+            d = signed_distance_brick(class_occupancy, channel, grid, zyx, trunc)
+            if d is not None:
+                distance[(d_index,) + zyx] = d
+    return distance
+
+
+def _write_octree(group, leaf_codes, leaf_classes, depth: int) -> None:
+    """Pass 4: the sparse octree of the occupied voxels, one array of Morton codes a level."""
+    # Morton order within each brick differs from global order: sort the leaves once
+    codes = np.concatenate(leaf_codes) if leaf_codes else np.zeros(0, np.uint64)
+    cls_of_leaf = np.concatenate(leaf_classes) if leaf_classes else np.zeros(0, np.int8)
+    order = np.argsort(codes, kind="stable")
+    codes, cls_of_leaf = codes[order], cls_of_leaf[order]
+    octree = group.create_group("octree")
+    for level, level_codes in enumerate(octree_levels(codes, depth)):
+        _write_1d(octree, f"level_{level:02d}", level_codes, "uint64")
+    _write_1d(octree, "leaf_class", cls_of_leaf, "int8")
+    octree.attrs["octree"] = {
+        "depth": depth, "root_size_voxels": 1 << depth, "levels": [f"level_{l:02d}" for l in range(depth + 1)],
+        "morton": "21 bits per axis interleaved, x in bit 0, y in bit 1, z in bit 2; voxel (x, y, z) indices",
+        "cell_of_level": "level l cell c covers voxels whose code >> 3*(depth-l) == c",
+        "leaf_class": "class index per leaf (aligned with the last level), -1 when no class passes its threshold",
+    }
 
 
 def storage_bytes(group, dense_arrays) -> dict:
