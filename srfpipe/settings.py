@@ -445,7 +445,7 @@ class EvaluateSettings(SettingsSection):
     supersample: int | None = None
     """render each held-out pixel as the mean of s x s rays over its footprint, as a pixel (and a
     downscaled image's area average) integrates light over its area. null: 2 while a view's s x s
-    rays stay within 131072 (the plant's and the orchard's ..."""
+    rays stay within 262144 (views of up to 256 x 256 ..."""
     unlabelled_views: int = 8
     """sparse labels: when some training frames had no masks and the capture has ground-truth
     labels, this many of those frames (evenly spaced) are rendered and scored against the ground

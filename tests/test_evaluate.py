@@ -98,6 +98,7 @@ def test_classes_that_differ_from_the_fields_name_both(scene):
 def test_supersampling_is_on_for_small_views_and_measurably_changes_the_render(scene):
     # the default: 2 x 2 rays per pixel while a view stays within SUPERSAMPLE_MAX_RAYS rays
     assert default_supersample(128, 128, None) == 2 and default_supersample(160, 120, None) == 2
+    assert default_supersample(256, 256, None) == 2  # the plant at the resolution its 18 views keep
     assert default_supersample(270, 480, None) == 1 and default_supersample(270, 480, 3) == 3
     folder, images, labels = scene
     data = load_posed_images(images, labels)
