@@ -174,4 +174,4 @@ def refresh_readme() -> None:
     benchmark's new numbers reach it; a failure there is reported, not fatal to the benchmark."""
     done = subprocess.run([sys.executable, str(REPO / "scripts" / "readme_numbers.py")], capture_output=True, text=True)
     if done.returncode != 0:
-        print(f"README.md's headline table not refreshed: {done.stderr.strip().splitlines()[-1:]}", file=sys.stderr)
+        print(f"README.md's headline table not refreshed: {done.stderr.strip()}", file=sys.stderr)
