@@ -168,7 +168,7 @@ def scene_report(results: Path, workdir: Path, name: str) -> dict:
         for key in ("psnr", "psnr_object", "ssim", "miou", "miou_gt", "miou_gt_classes", "iou_gt",
                     "floater_fraction", "significant_samples_per_ray", "views", "miou_classes",
                     "train_view_psnr", "generalization_gap_db", "overfit", "miou_masks_gt", "miou_masks_gt_classes",
-                    "iou_masks_gt"):
+                    "iou_masks_gt", "train_view_psnr_borrowed_appearance", "appearance_gap_db"):
             if key in metrics:
                 report[key] = metrics[key]
     labels = results / name / "labels.zarr"

@@ -348,6 +348,10 @@ class TrainSettings(SettingsSection):
     """how the per-image appearance acts: latent (an input of the colour MLP, as NeRF-W and
     Nerfacto) or affine (a colour matrix and offset applied to each image's rendered pixels:
     exposure and white balance, and nothing a single view shows)"""
+    appearance_smoothness: float = 0.0
+    """weight of a penalty on how differently the colour MLP receives the latent appearance of each
+    training image and of the image taken nearest to it (the one a new view there borrows): keeps
+    what a single frame shows out of its embedding. 0 = ..."""
     distortion: float | None = None
     """weight of mip-NeRF 360's distortion loss, which pulls each ray's weight into one short
     interval (against fog and floaters)"""

@@ -244,6 +244,35 @@ def test_novel_view_borrows_the_appearance_of_the_nearest_training_image():
     assert float((borrowed - rendered).abs().max()) > 1e-3
 
 
+def test_appearance_smoothness_pulls_each_images_embedding_towards_its_nearest_neighbours():
+    options = dict(section_defaults("train"), default_cells=8, outer_resolution=4, hidden=8, appearance_dim=4)
+    config = build_model_config(options, [[-1, -1, -1], [1, 1, 1]], np.eye(4), [], num_images=4)
+    model = SRFModel(config)
+    poses = torch.eye(4).repeat(4, 1, 1)
+    poses[:, :3, 3] = torch.tensor([[0.0, 0.0, -3.0], [0.0, 0.0, -3.1], [0.2, 0.0, -3.0], [0.0, 0.0, -3.05]])
+    model.field.record_training_cameras(poses, [0, 1, 2])  # view 3 is held out
+    pairs = model.field.training_neighbours()
+    # each training image with the one a new view at its pose would borrow from; never a held-out one
+    assert sorted(map(tuple, pairs.tolist())) == [(0, 1), (1, 0), (2, 0)]
+    with torch.no_grad():
+        model.field.appearance.weight.normal_(generator=torch.Generator().manual_seed(0))
+    weights = model.field.appearance_weights()
+    assert weights.shape == (model.field.color_mlp[0].out_features, 4)
+    loss = losses.appearance_smoothness_loss(model.field.appearance.weight, weights, pairs)
+    a, w = model.field.appearance.weight.detach(), weights.detach()
+    expected = sum(float(((a[i] - a[j]) @ w.T).pow(2).sum()) for i, j in pairs.tolist()) / 3
+    assert loss.item() == pytest.approx(expected, rel=1e-5)
+    # what the colour MLP receives is penalised: shrinking the embeddings as W_a grows undoes nothing
+    scaled = losses.appearance_smoothness_loss(a * 0.01, w * 100.0, pairs)
+    assert float(scaled) == pytest.approx(expected, rel=1e-4)
+    loss.backward()
+    step = -model.field.appearance.weight.grad
+    assert float(((a[0] + 1e-3 * step[0]) - a[1]).norm()) < float((a[0] - a[1]).norm())
+    assert float(step[3].abs().max()) == 0.0  # the held-out image's row is never trained
+    empty = losses.appearance_smoothness_loss(a, w, torch.zeros((0, 2), dtype=torch.long))
+    assert float(empty) == 0.0
+
+
 def test_the_affine_appearance_transforms_each_images_colours_and_nothing_else():
     options = dict(section_defaults("train"), default_cells=8, outer_resolution=4, hidden=8, appearance_dim=4,
                    appearance_model="affine")

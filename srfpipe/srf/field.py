@@ -171,6 +171,9 @@ class SemanticField(nn.Module):
             num_images = int(c["num_images"])
             self.register_buffer("camera_centres", torch.full((num_images, 3), float("nan")))
             self.register_buffer("camera_axes", torch.full((num_images, 3), float("nan")))
+            # (K, 2) each training image and the one taken nearest to it (train.appearance_smoothness);
+            # not a buffer: a trained field's file does not carry it
+            self.appearance_pairs = torch.zeros((0, 2), dtype=torch.long)
         self.color_mlp = mlp(geo + self.sh_degree**2 + colour_appearance_dim, hidden, 3,
                              layers=int(c["color_layers"]))
         self.num_classes = int(c["num_classes"])
@@ -290,6 +293,7 @@ class SemanticField(nn.Module):
         poses = camera_to_scene[views].to(self.camera_centres)
         self.camera_centres[views] = poses[:, :3, 3]
         self.camera_axes[views] = poses[:, :3, 2]
+        self.appearance_pairs = self.training_neighbours()
 
     def nearest_training_view(self, origin: torch.Tensor, axis: torch.Tensor, exclude: int | None = None) -> int | None:
         """The training image taken nearest to a camera at `origin` looking along `axis`
@@ -306,6 +310,20 @@ class SemanticField(nn.Module):
         axis = axis / axis.norm().clamp(min=1e-12)
         cost = (self.camera_centres - origin).norm(dim=-1) / size + (1.0 - self.camera_axes @ axis)
         return int(torch.where(known, cost, torch.full_like(cost, float("inf"))).argmin())
+
+    def appearance_weights(self) -> torch.Tensor:
+        """W_a (hidden, dim): the colour MLP's first-layer weights on the appearance embedding."""
+        return self.color_mlp[0].weight[:, self.geo_features + self.sh_degree**2:]
+
+    def training_neighbours(self) -> torch.Tensor:
+        """Pairs (K, 2) of each training image and the other training image taken nearest to it
+        (the choice a new view at its pose makes: `nearest_training_view`)."""
+        known = torch.isfinite(self.camera_centres).all(dim=-1).nonzero().flatten().tolist() \
+            if self.appearance is not None else []
+        pairs = [(i, self.nearest_training_view(self.camera_centres[i], self.camera_axes[i], exclude=i))
+                 for i in known]
+        return torch.tensor([p for p in pairs if p[1] is not None], dtype=torch.long,
+                            device=self.camera_centres.device if known else None).reshape(-1, 2)
 
     def semantics(self, h: torch.Tensor, x: torch.Tensor | None = None) -> torch.Tensor:
         """F_s: C independent logits (M, C) from h.detach() (and the position x when the field

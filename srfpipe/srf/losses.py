@@ -129,3 +129,15 @@ def grid_total_variation(encoding, samples: int | None = None,
     # a hashed level's rows are not neighbours in space
     grids = [m for m in encoding.modules() if isinstance(m, DenseGrid) and not m.hashed]
     return sum(total_variation(g.table, g.resolution, samples, generator) for g in grids)
+
+
+
+def appearance_smoothness_loss(embedding: torch.Tensor, weight: torch.Tensor, neighbour: torch.Tensor) -> torch.Tensor:
+    """mean_i ||W_a (a_i - a_n(i))||^2 over the training images i and the image n(i) taken nearest
+    to each (`neighbour`: pairs (K, 2) of embedding rows; none gives 0). W_a (hidden, dim): the
+    colour MLP's first-layer weights on the embedding; on a_i alone the penalty would be undone by
+    a W_a that grows as the embeddings shrink."""
+    if neighbour.shape[0] == 0:
+        return embedding.sum() * 0.0
+    difference = (embedding[neighbour[:, 0]] - embedding[neighbour[:, 1]]) @ weight.T
+    return difference.pow(2).sum(dim=-1).mean()

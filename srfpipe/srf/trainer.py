@@ -607,6 +607,9 @@ def loss_terms(s: TrainSettings, model, outputs: dict, rgb, labels, valid, gener
         terms["tv_density"] = s.tv_density * losses.grid_total_variation(model.field.inner_sigma, s.tv_samples, generator)
     if s.tv_features and model.field.density_grid:
         terms["tv_features"] = s.tv_features * losses.grid_total_variation(model.field.inner, s.tv_samples, generator)
+    if s.appearance_smoothness and model.field.appearance is not None and model.field.appearance_model == "latent":
+        terms["appearance_smoothness"] = s.appearance_smoothness * losses.appearance_smoothness_loss(
+            model.field.appearance.weight, model.field.appearance_weights(), model.field.appearance_pairs)
     if cameras is not None:
         terms["camera_penalty"] = cameras.penalty()
     return terms
