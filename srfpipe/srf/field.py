@@ -318,12 +318,13 @@ class SemanticField(nn.Module):
     def training_neighbours(self) -> torch.Tensor:
         """Pairs (K, 2) of each training image and the other training image taken nearest to it
         (the choice a new view at its pose makes: `nearest_training_view`)."""
-        known = torch.isfinite(self.camera_centres).all(dim=-1).nonzero().flatten().tolist() \
-            if self.appearance is not None else []
+        if self.appearance is None:
+            return torch.zeros((0, 2), dtype=torch.long)
+        known = torch.isfinite(self.camera_centres).all(dim=-1).nonzero().flatten().tolist()
         pairs = [(i, self.nearest_training_view(self.camera_centres[i], self.camera_axes[i], exclude=i))
                  for i in known]
         return torch.tensor([p for p in pairs if p[1] is not None], dtype=torch.long,
-                            device=self.camera_centres.device if known else None).reshape(-1, 2)
+                            device=self.camera_centres.device).reshape(-1, 2)
 
     def semantics(self, h: torch.Tensor, x: torch.Tensor | None = None) -> torch.Tensor:
         """F_s: C independent logits (M, C) from h.detach() (and the position x when the field

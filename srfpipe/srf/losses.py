@@ -131,7 +131,6 @@ def grid_total_variation(encoding, samples: int | None = None,
     return sum(total_variation(g.table, g.resolution, samples, generator) for g in grids)
 
 
-
 def appearance_smoothness_loss(embedding: torch.Tensor, weight: torch.Tensor, neighbour: torch.Tensor) -> torch.Tensor:
     """mean_i ||W_a (a_i - a_n(i))||^2 over the training images i and the image n(i) taken nearest
     to each (`neighbour`: pairs (K, 2) of embedding rows; none gives 0). W_a (hidden, dim): the
