@@ -318,6 +318,10 @@ def panel_entry(scene: dict, peers: dict) -> dict:
         "srfpipe_psnr_5min": scene.get("psnr_5min"),
         "bounds_source": bounds.get("source"), "steps": scene.get("steps"),
         **({"nerfacto_same_images_as": peers["same_images_as"]} if "same_images_as" in peers else {}),
+        # nerfacto's own gap on the same training views (own embedding) at 10 minutes, where measured
+        **({f"nerfacto_{key}": peers["training_views"].get(key) for key in
+            ("train_view_psnr", "train_view_psnr_average_appearance", "generalization_gap_db")}
+           if peers.get("training_views") else {}),
     }
 
 
@@ -333,6 +337,9 @@ def peers_by_scene() -> dict:
                                     **((nerfacto_alone.get(name) or {}).get("budgets", {}).get(b) or {})}
                                 for b in (str(60 * minutes) for minutes in NERFACTO_MINUTES)}}
              for name in {*side_by_side, *nerfacto_alone}}
+    for name, entry in nerfacto_alone.items():
+        if entry.get("training_views"):
+            peers[name]["training_views"] = entry["training_views"]
     for name, same in SAME_IMAGES.items():
         if name not in peers and same in peers:
             peers[name] = {**peers[same], "same_images_as": same}

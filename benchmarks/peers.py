@@ -38,7 +38,8 @@ curve rises). `time_to_nerfacto300_ratio` = nerfacto's time / srfpipe's time.
     python benchmarks/peers.py --nsvenv DIR   # nerfstudio's environment (default $NSVENV or /tmp/nsvenv)
     python benchmarks/peers.py --scenes fox --preset fast       # as peers.json's entries (each scene measured on its own, --preset fast)
     python benchmarks/peers.py --panel bottle beer  # nerfacto alone on captures.py's builds of panel captures
-                                                    # (1, 2, 5, 10 min; peers.json `panel`; ~20 min a capture)
+                                                    # (1, 2, 5, 10 min; peers.json `panel`; ~20 min a capture),
+                                                    # and its training views at 10 min (`training_views`: its gap)
 
 Writes benchmarks/results/peers.json (`peers_quick.json`) and peers.png (PSNR against the clock).
 Opt-in and never part of CI: nerfstudio is no dependency of srfpipe (a 3.5 GB environment).
@@ -422,7 +423,9 @@ def nerfstudio_side(argv: list[str]) -> int:
         print(json.dumps({"window": int(config["logging"]["max_buffer_size"]), "steps": [e.step for e in events],
                           "means": [e.value for e in events], "walls": [e.wall_time for e in events]}))
         return 0
-    if action == "render":  # render FOLDER NPZ CHECKPOINT: the eval views with a checkpoint's weights
+    if action in ("render", "render_train"):
+        # render FOLDER NPZ CHECKPOINT: the eval views with a checkpoint's weights;
+        # render_train FOLDER NPZ CHECKPOINT NAME,...: those training views, each twice (below)
         import torch
         from nerfstudio.utils.eval_utils import eval_setup
 
@@ -438,6 +441,8 @@ def nerfstudio_side(argv: list[str]) -> int:
             state = torch.load(checkpoint, map_location="cpu", weights_only=True)
         pipeline.load_pipeline(state["pipeline"], state["step"])
         pipeline.eval()
+        if action == "render_train":
+            return _render_training_views(pipeline, out, argv[4].split(","), int(state["step"]))
         dataset = pipeline.datamanager.eval_dataset
         started = time.perf_counter()
         renders, images = [], []
@@ -452,6 +457,32 @@ def nerfstudio_side(argv: list[str]) -> int:
                           "render_seconds": time.perf_counter() - started}))
         return 0
     raise SystemExit(f"unknown action {action}")
+
+
+def _render_training_views(pipeline, out: Path, names: list[str], step: int) -> int:
+    """Training views of nerfacto, each rendered twice: as nerfacto renders any view in eval mode
+    (the mean of the training images' appearance embeddings) and with the view's own embedding, the
+    one it trained with (nerfacto's field reads `embedding_appearance.mean` in eval mode: that
+    method is pointed at the view's row while it renders). Camera refinement is off
+    (NERFACTO_ARGS), so the training cameras are the ones it trained with."""
+    dataset = pipeline.datamanager.train_dataset
+    files = [Path(f).name for f in dataset.image_filenames]
+    embedding = pipeline.model.field.embedding_appearance
+    started = time.perf_counter()
+    own, average, images = [], [], []
+    for name in names:
+        index = files.index(name)  # the row of the embedding: the position in the training set
+        camera = dataset.cameras[index : index + 1].to(pipeline.device)
+        average.append(pipeline.model.get_outputs_for_camera(camera)["rgb"].cpu().numpy().astype(np.float32))
+        embedding.mean = lambda dim=0, row=index: embedding.embedding.weight[row]
+        try:
+            own.append(pipeline.model.get_outputs_for_camera(camera)["rgb"].cpu().numpy().astype(np.float32))
+        finally:
+            del embedding.mean  # the class's method again
+        images.append(dataset.get_numpy_image(index)[..., :3])
+    np.savez(out, own=np.stack(own), average=np.stack(average), images=np.stack(images), names=np.array(names))
+    print(json.dumps({"step": step, "views": len(names), "render_seconds": time.perf_counter() - started}))
+    return 0
 
 
 class NerfactoRenderer:
@@ -474,8 +505,32 @@ class NerfactoRenderer:
         npz.unlink()
         return result
 
+    def training_views(self, checkpoint: Path, indices: list[int]) -> dict:
+        """nerfacto's `train_view_psnr` (each view with its own appearance embedding, as srfpipe's)
+        and `train_view_psnr_average_appearance` (with the mean embedding it renders new views with)
+        on srfpipe's training views `indices`, at `checkpoint`."""
+        self.scratch.mkdir(parents=True, exist_ok=True)
+        npz = self.scratch / f"{checkpoint.stem}-train.npz"
+        names = [f"frame_{i:05d}.png" for i in indices]
+        info = nerfacto_tool(self.nsvenv, "_nerfacto", "render_train", str(self.run), str(npz), str(checkpoint),
+                             ",".join(names))
+        data = np.load(npz)
+        targets = [self.views["images"][i] for i in indices]
+        if not all(np.array_equal(a, b) for a, b in zip(data["images"], targets, strict=True)):
+            raise RuntimeError("nerfstudio's training images differ from srfpipe's images.zarr")
+        own, average = image_metrics(list(data["own"]), targets), image_metrics(list(data["average"]), targets)
+        npz.unlink()
+        return {"train_view_indices": list(indices), "train_view_psnr": own["psnr"],
+                "train_view_psnr_average_appearance": average["psnr"], "file": checkpoint.name,
+                "render_seconds": info["render_seconds"]}
+
 
 # ----------------------------------------------------------------------------- one scene
+
+
+def by_name(files: dict[str, float], name: str) -> str:
+    """The path of `files` (path -> clock seconds) whose file name is `name`."""
+    return next(path for path in files if Path(path).name == name)
 
 
 def evaluate_method(label: str, files: dict[str, float], render, cache: Evaluations, budgets) -> dict:
@@ -617,8 +672,22 @@ def run_panel_capture(name: str, args, cache_dir: Path) -> dict:
     renderer = NerfactoRenderer(args.nsvenv, run, views, heldout, folder / "renders")
     nerf = evaluate_method(f"{name} nerfacto", checkpoints, renderer.metrics,
                            Evaluations(cache_dir / f"{name}-evaluations.json"), args.budgets)
+    # its generalization gap beside srfpipe's: the training views srfpipe's evaluate scores
+    # (evaluate.train_views, evenly spaced), at the checkpoint of the largest budget
+    from srfpipe.evaluate import train_view_choice
+    from srfpipe.settings import EvaluateSettings
+
+    train, _ = split_views(len(views["images"]), holdout)
+    final_budget = str(int(max(args.budgets)))
+    final = nerf["budgets"][final_budget]
+    print(f"{name} nerfacto: training views at {final['file']}", flush=True)
+    training = renderer.training_views(Path(by_name(checkpoints, final["file"])),
+                                       train_view_choice(train, EvaluateSettings().train_views).tolist())
+    training["generalization_gap_db"] = training["train_view_psnr"] - final["psnr"]
+    training["budget_seconds"] = float(max(args.budgets))
     last_step = max(timing["clock"])
     return {
+        "training_views": training,
         "budgets": {b: {"nerfacto": {k: v for k, v in m.items() if k != "per_view"}} for b, m in nerf["budgets"].items()},
         "heldout": {"indices": heldout.tolist(), "names": [views["names"][i] for i in heldout] if views["names"] else None,
                     "width": int(views["images"].shape[2]), "height": int(views["images"].shape[1])},
@@ -642,6 +711,9 @@ def panel_main(args) -> int:
         write_result(path, report)  # after each capture: a long run keeps what it measured
         for budget, pair in entry["budgets"].items():
             print(f"{name:14} {budget:>5} s | nerfacto {pair['nerfacto']['psnr']:6.2f} dB, SSIM {pair['nerfacto']['ssim']:.3f}")
+        views = entry["training_views"]
+        print(f"{name:14} training views: {views['train_view_psnr']:.2f} dB with their own appearance, "
+              f"{views['train_view_psnr_average_appearance']:.2f} with the mean; gap {views['generalization_gap_db']:.2f} dB")
     return 0
 
 
@@ -729,7 +801,8 @@ def main() -> int:
     parser.add_argument("--workdir", type=Path, default=None)
     parser.add_argument("--panel", nargs="+", default=None, choices=PANEL,
                         help="nerfacto alone on these captures of benchmarks/captures.py's panel, on the images "
-                             "and split it built (--captures-workdir); budgets 300 and 600 s unless --budgets")
+                             "and split it built (--captures-workdir): held-out PSNR at 1, 2, 5 and 10 minutes "
+                             "unless --budgets, and its training views at the last (its generalization gap)")
     parser.add_argument("--captures-workdir", type=Path, default=REPO / "benchmarks" / "work" / "captures")
     parser.add_argument("--budgets", default=None, help=argparse.SUPPRESS)  # e.g. 20,40: a test of the script
     parser.add_argument("--target-budget", type=float, default=None, help=argparse.SUPPRESS)
