@@ -685,6 +685,7 @@ def run_panel_capture(name: str, args, cache_dir: Path) -> dict:
                                        train_view_choice(train, EvaluateSettings().train_views).tolist())
     training["generalization_gap_db"] = training["train_view_psnr"] - final["psnr"]
     training["budget_seconds"] = float(max(args.budgets))
+    kept = prune_checkpoints(checkpoints, {p["file"] for p in nerf["points"].values()})
     last_step = max(timing["clock"])
     return {
         "training_views": training,
@@ -694,8 +695,19 @@ def run_panel_capture(name: str, args, cache_dir: Path) -> dict:
         "images": str(results / "images.zarr"),
         "nerfacto": {"steps": last_step + 1, "clock_seconds": timing["clock"][last_step],
                      "loop_wall_seconds": timing["wall"][last_step], "checkpoints": len(checkpoints),
-                     "save_every_steps": NERFACTO_SAVE_EVERY, "run": str(run), "command_args": NERFACTO_ARGS},
+                     "save_every_steps": NERFACTO_SAVE_EVERY, "run": str(run), "command_args": NERFACTO_ARGS,
+                     "checkpoints_kept": kept},
     }
+
+
+def prune_checkpoints(checkpoints: dict[str, float], keep: set[str]) -> list[str]:
+    """Delete the run's checkpoints whose file names are not in `keep` (the evaluated ones): a
+    checkpoint every NERFACTO_SAVE_EVERY steps finds each budget's step by its clock, but at ~60 MB
+    each a 10-minute run holds 6-11 GB, and three captures filled a 28 GB disk. Returns the kept names."""
+    for path in checkpoints:
+        if Path(path).name not in keep:
+            Path(path).unlink(missing_ok=True)
+    return sorted(keep)
 
 
 def panel_main(args) -> int:

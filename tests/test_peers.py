@@ -77,3 +77,16 @@ def test_snapshot_marks_hold_the_budgets_and_a_finer_grid_early():
     assert marks[:3] == [10.0, 20.0, 30.0] and max(marks) == 600.0
     assert peers.nearest({"a": 58.0, "b": 61.0, "c": 90.0}, 60) == "b"
 
+
+
+def test_pruning_keeps_only_the_evaluated_checkpoints(tmp_path):
+    # a 10-minute nerfacto run saves ~60 MB every 20 steps: the panel keeps what it evaluated
+    files = {}
+    for step in range(0, 100, 20):
+        path = tmp_path / f"step-{step:09d}.ckpt"
+        path.write_bytes(b"x")
+        files[str(path)] = step * 0.5
+    kept = peers.prune_checkpoints(files, {"step-000000020.ckpt", "step-000000080.ckpt"})
+    assert kept == ["step-000000020.ckpt", "step-000000080.ckpt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == kept
+    assert Path(peers.by_name(files, "step-000000080.ckpt")).name == "step-000000080.ckpt"
