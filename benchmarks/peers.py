@@ -70,6 +70,7 @@ QUICK_SCENES = ["fox"]
 TARGET_BUDGET = 300
 PANEL_BUDGETS = [60.0, 120.0, 300.0, 600.0]  # the panel's nerfacto_psnr_{1,2,5,10}min
 NERFACTO_SAVE_EVERY = 20  # steps (~10 s at 0.5 s a step)
+PRUNED_GAP_SECONDS = 60.0  # a budget this far from every checkpoint: the run was pruned for other budgets
 # The light nerfacto of ../shared/peers/nerfstudio-setup.sh (fits minutes on 2 cores), with the
 # evaluation during training switched off (its time would count against nerfacto's clock).
 NERFACTO_ARGS = [
@@ -667,8 +668,13 @@ def run_panel_capture(name: str, args, cache_dir: Path) -> dict:
     run = train_nerfacto(args.nsvenv, folder / "data", folder, holdout, max(args.budgets), content)
     timing = nerfacto_clock(args.nsvenv, run)
     checkpoints = nerfacto_checkpoints(run, timing["clock"])
+    if not checkpoints:
+        raise SystemExit(f"{run}: no checkpoints left; delete {folder} to train nerfacto again")
     if max(checkpoints.values()) < max(args.budgets):
         print(f"WARNING: nerfacto's log covers {max(checkpoints.values()):.0f} s, less than the budget")
+    if far := [b for b in args.budgets if abs(checkpoints[nearest(checkpoints, b)] - b) > PRUNED_GAP_SECONDS]:
+        raise SystemExit(f"{run}: no checkpoint within {PRUNED_GAP_SECONDS:.0f} s of the budgets {far} (an earlier "
+                         f"measurement kept only the ones it evaluated); delete {folder} to train nerfacto again")
     renderer = NerfactoRenderer(args.nsvenv, run, views, heldout, folder / "renders")
     nerf = evaluate_method(f"{name} nerfacto", checkpoints, renderer.metrics,
                            Evaluations(cache_dir / f"{name}-evaluations.json"), args.budgets)
