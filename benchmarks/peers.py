@@ -448,9 +448,7 @@ def nerfstudio_side(argv: list[str]) -> int:
         started = time.perf_counter()
         renders, images = [], []
         for i in range(len(dataset)):
-            camera = dataset.cameras[i : i + 1].to(pipeline.device)
-            outputs = pipeline.model.get_outputs_for_camera(camera)
-            renders.append(outputs["rgb"].cpu().numpy().astype(np.float32))
+            renders.append(_rgb(pipeline, dataset.cameras[i : i + 1]))
             images.append(dataset.get_numpy_image(i)[..., :3])
         names = [Path(f).name for f in dataset.image_filenames]
         np.savez(out, renders=np.stack(renders), images=np.stack(images), names=np.array(names))
@@ -458,6 +456,11 @@ def nerfstudio_side(argv: list[str]) -> int:
                           "render_seconds": time.perf_counter() - started}))
         return 0
     raise SystemExit(f"unknown action {action}")
+
+
+def _rgb(pipeline, camera) -> np.ndarray:
+    """nerfacto's colour render of one camera, float32 (H, W, 3)."""
+    return pipeline.model.get_outputs_for_camera(camera.to(pipeline.device))["rgb"].cpu().numpy().astype(np.float32)
 
 
 def _render_training_views(pipeline, out: Path, names: list[str], step: int) -> int:
@@ -473,11 +476,11 @@ def _render_training_views(pipeline, out: Path, names: list[str], step: int) -> 
     own, average, images = [], [], []
     for name in names:
         index = files.index(name)  # the row of the embedding: the position in the training set
-        camera = dataset.cameras[index : index + 1].to(pipeline.device)
-        average.append(pipeline.model.get_outputs_for_camera(camera)["rgb"].cpu().numpy().astype(np.float32))
+        camera = dataset.cameras[index : index + 1]
+        average.append(_rgb(pipeline, camera))
         embedding.mean = lambda dim=0, row=index: embedding.embedding.weight[row]
         try:
-            own.append(pipeline.model.get_outputs_for_camera(camera)["rgb"].cpu().numpy().astype(np.float32))
+            own.append(_rgb(pipeline, camera))
         finally:
             del embedding.mean  # the class's method again
         images.append(dataset.get_numpy_image(index)[..., :3])
@@ -529,6 +532,11 @@ class NerfactoRenderer:
 # ----------------------------------------------------------------------------- one scene
 
 
+def budget_key(budget: float) -> str:
+    """A budget's key in the reports: "300", or "20.5" where it is not whole."""
+    return str(int(budget) if float(budget).is_integer() else budget)
+
+
 def by_name(files: dict[str, float], name: str) -> str:
     """The path of `files` (path -> clock seconds) whose file name is `name`."""
     return next(path for path in files if Path(path).name == name)
@@ -549,7 +557,7 @@ def evaluate_method(label: str, files: dict[str, float], render, cache: Evaluati
     per_budget = {}
     for budget in budgets:
         seconds = files[nearest(files, budget)]
-        per_budget[str(int(budget) if float(budget).is_integer() else budget)] = at(seconds)
+        per_budget[budget_key(budget)] = at(seconds)
     return {"budgets": per_budget, "points": points, "at": at, "available": sorted(by_clock)}
 
 
@@ -684,8 +692,7 @@ def run_panel_capture(name: str, args, cache_dir: Path) -> dict:
     from srfpipe.settings import EvaluateSettings
 
     train, _ = split_views(len(views["images"]), holdout)
-    final_budget = str(int(max(args.budgets)))
-    final = nerf["budgets"][final_budget]
+    final = nerf["budgets"][budget_key(max(args.budgets))]
     print(f"{name} nerfacto: training views at {final['file']}", flush=True)
     training = renderer.training_views(Path(by_name(checkpoints, final["file"])),
                                        train_view_choice(train, EvaluateSettings().train_views).tolist())
