@@ -16,7 +16,9 @@ every 8th view held out):
                 missing from every third view's masks (as a segmenter drops a stalk);
 * orchard-apple generated variant: the orchard with only `apple` prompted (masks cover a few percent);
 * orchard-lens  generated variant: the orchard rendered through an OpenCV lens with a phone's strong
-                tangential calibration (k1 -0.0024, k2 -0.021, p1 0.011, p2 0.0096) at 605 x 806.
+                tangential calibration (k1 -0.0024, k2 -0.021, p1 0.011, p2 0.0096) at 605 x 806;
+* orchard-front generated variant: the orchard's 80 views taken from one side, their rings spread
+                over 30 degrees of azimuth (a forward-facing capture like the fern's, with ground truth).
 
     python benchmarks/captures.py [--quick] [--workdir DIR] [--scenes NAME ...] [--panel-only] [--masks-only]
 
@@ -55,9 +57,12 @@ FOX = SHARED / "fox"
 REFERENCE_DOWNSCALE = 4
 REFERENCE_KEYS = ("psnr", "psnr_object", "ssim", "miou_gt_classes", "floater_fraction", "views")
 
-PANEL = ("orchard", "plant", "fox", "bottle", "fern", "beer", "plant-small", "orchard-apple", "orchard-lens")
+PANEL = ("orchard", "plant", "fox", "bottle", "fern", "beer", "plant-small", "orchard-apple", "orchard-lens",
+         "orchard-front")
 # a phone's COLMAP calibration with large tangential terms (the fruit capture of the issue)
 PHONE_LENS = [-0.0024, -0.021, 0.011, 0.0096]
+# orchard-front: the azimuth its cameras span (the fern's 20 views span 18 degrees round their focus)
+FRONT_ARC_DEG = 30.0
 # generated variants: (scene file they start from, overrides)
 VARIANTS = {
     "plant-small": ("plant", {"plant": {"fov_deg": 40},
@@ -65,6 +70,7 @@ VARIANTS = {
                                                           "pattern": "{prompt}/{stem}.png"}}}),
     "orchard-apple": ("orchard", {"segmentation": {"prompts": ["apple"]}}),
     "orchard-lens": ("orchard", {"orchard": {"width": 605, "height": 806, "distortion": PHONE_LENS}}),
+    "orchard-front": ("orchard", {"orchard": {"arc_deg": FRONT_ARC_DEG}}),
 }
 # Variants whose images are another capture's: only the prompts differ, and nerfacto never sees the
 # masks, so it trains on the same images.zarr with the same split and its numbers are that capture's

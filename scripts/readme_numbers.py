@@ -53,7 +53,7 @@ def headline_rows() -> list[tuple[str, str, str]]:
          f"({earlier} from earlier runs); small plant mIoU {panel['plant-small']['miou_classes']:.2f}"),
         ("peers", "against nerfstudio's nerfacto, same images, cores",
          f"orchard: its 5-min PSNR {peers['orchard']['time_to_nerfacto300_ratio']:.1f}x sooner; 10 min: ahead on "
-         f"{ahead_of} captures ({min(ahead):+.1f} to {max(ahead):+.1f} dB)"),
+         f"{ahead_of} ({min(ahead):+.1f} to {max(ahead):+.1f} dB)"),
         ("tradeoff", "presets and knobs, orchard and plant",
          f"orchard: `fast` {presets['fast']['psnr']:.1f} dB in {presets['fast']['train_seconds'] / 60:.0f} min, "
          f"`balanced` {presets['balanced']['psnr']:.1f} in {presets['balanced']['train_seconds'] / 60:.0f}, "

@@ -72,6 +72,10 @@ class OrchardSettings(SettingsSection):
     """camera heights (metres) of the rings walked around the tree"""
     ring_radius: float = 3.5
     """metres from the trunk"""
+    arc_deg: float | None = field(default=None, metadata={"unset": True})
+    """spread each ring's views over this arc of azimuth on one side of the tree, every camera
+    looking at it from there (a forward-facing capture, as LLFF's handheld ones; the rings only,
+    `video` walks the whole turn)"""
     distortion: tuple | None = field(default=None, metadata={"unset": True})
     """render through an OpenCV lens with these k1, k2, p1, p2 (written to transforms.json, as a
     real capture's calibration)"""

@@ -191,6 +191,20 @@ def test_views_on_rings_look_at_the_tree():
         look_at([0, 0, 5], [0, 0, 0])
 
 
+def test_views_on_an_arc_face_the_tree_from_one_side():
+    """orchard.arc_deg: a forward-facing capture (the panel's orchard-front), which the trainer's
+    defaults must tell from an orbit (`cameras_surround`)."""
+    from srfpipe.cameras import cameras_surround
+    from srfpipe.scenes.orchard import ring_poses
+
+    target = np.array([0.0, 0.0, 1.4])
+    poses = ring_poses(80, [0.9, 2.2], 3.5, target, np.random.default_rng(0), arc_deg=30.0)
+    azimuth = np.degrees(np.arctan2(poses[:, 1, 3], poses[:, 0, 3]))
+    assert azimuth.min() > -16 and azimuth.max() < 16 and azimuth.max() - azimuth.min() > 25
+    assert not cameras_surround(poses, target)
+    assert cameras_surround(ring_poses(80, [0.9, 2.2], 3.5, target, np.random.default_rng(0)), target)
+
+
 def test_scene_without_apples_or_leaves(tmp_path):
     import open3d as o3d
 

@@ -31,12 +31,14 @@ VIDEO_FILE = "video.avi"  # write_capture(video_fps=...): the views as one video
 
 def ring_poses(
     views: int, ring_heights: list[float], ring_radius, target: np.ndarray, rng: np.random.Generator,
-    height_jitter: float = 0.03,
+    height_jitter: float = 0.03, arc_deg: float | None = None,
 ) -> np.ndarray:
     """(views, 4, 4) camera_to_world on rings; views split evenly, rings offset by half a step.
 
     `ring_radius` is one radius or one per ring; `height_jitter` is in world units (the default
-    suits the orchard's metres). A little jitter in azimuth, radius and height keeps the views from
+    suits the orchard's metres). `arc_deg`: the views of each ring spread over this arc of azimuth
+    centred on +x (a forward-facing capture: every camera on one side, looking the same way) instead
+    of the whole turn. A little jitter in azimuth, radius and height keeps the views from
     being exactly symmetric (as a person walking would be), which also helps SfM and held-out
     evaluation.
     """
@@ -47,8 +49,13 @@ def ring_poses(
     for r, (height, count) in enumerate(zip(ring_heights, counts)):
         if count == 0:
             continue
-        step = 2 * np.pi / count
-        azimuths = np.arange(count) * step + (r / n_rings) * step + rng.normal(0, 0.08 * step, count)
+        if arc_deg is None:
+            step = 2 * np.pi / count
+            azimuths = np.arange(count) * step + (r / n_rings) * step + rng.normal(0, 0.08 * step, count)
+        else:
+            step = np.radians(arc_deg) / count
+            azimuths = ((np.arange(count) + (r + 0.5) / n_rings) * step - np.radians(arc_deg) / 2
+                        + rng.normal(0, 0.08 * step, count))
         radii = radius_of_ring[r] * (1.0 + rng.normal(0, 0.02, count))
         heights = height + rng.normal(0, height_jitter, count)
         for a, rad, h in zip(azimuths, radii, heights):

@@ -64,7 +64,7 @@ def generate_orchard(out_dir: str | Path, progress: bool = True, **options) -> P
     """Build the tree, render every view and write the capture folder atomically; returns its path.
 
     `options` are the scene schema's `orchard` keys (seed, n_apples, branch_depth, leaf_density,
-    tree_height, views, width, height, fov_deg, ring_heights, ring_radius); missing keys take the
+    tree_height, views, width, height, fov_deg, ring_heights, ring_radius, arc_deg); missing keys take the
     schema defaults, unknown or invalid ones raise ValueError.
     """
     from srfpipe.scenes.raycast import OrchardRenderer
@@ -84,7 +84,8 @@ def generate_orchard(out_dir: str | Path, progress: bool = True, **options) -> P
     if params.get("video"):
         poses = orbit_poses(params["views"], params["ring_heights"], params["ring_radius"], target)
     else:
-        poses = ring_poses(params["views"], params["ring_heights"], params["ring_radius"], target, rng)
+        poses = ring_poses(params["views"], params["ring_heights"], params["ring_radius"], target, rng,
+                           arc_deg=params.get("arc_deg"))
     width, height = params["width"], params["height"]
     scene = {
         "world_frame": "metres, z up, ground plane z = 0, trunk base at the origin",
