@@ -78,7 +78,6 @@ def test_snapshot_marks_hold_the_budgets_and_a_finer_grid_early():
     assert peers.nearest({"a": 58.0, "b": 61.0, "c": 90.0}, 60) == "b"
 
 
-
 def test_pruning_keeps_only_the_evaluated_checkpoints(tmp_path):
     # a 10-minute nerfacto run saves ~60 MB every 20 steps: the panel keeps what it evaluated
     files = {}
