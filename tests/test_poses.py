@@ -540,10 +540,11 @@ def test_orchard_capture_import(tiny_orchard, tmp_path):
 # ----------------------------------------------------------------------------- COLMAP refinement
 
 
-def render_box_corner(pose, intrinsics, width, height, textures, extent=2.0) -> np.ndarray:
+def render_box_corner(pose, intrinsics, width, height, textures, extent=2.0, distortion=None) -> np.ndarray:
     """Ray-cast the inside of a box corner (planes x=0, y=0, z=0 over [0, extent]^2), noise-textured,
-    so that SIFT finds plenty of exact features: a tiny capture on which refinement must work."""
-    origins, directions = cameras.pixel_rays(pose, intrinsics, width, height)
+    so that SIFT finds plenty of exact features: a tiny capture on which refinement must work.
+    `distortion`: seen through that OpenCV lens."""
+    origins, directions = cameras.pixel_rays(pose, intrinsics, width, height, distortion)
     image = np.zeros((height, width, 3), np.float32)
     nearest = np.full((height, width), np.inf)
     for axis, texture in enumerate(textures):
@@ -559,7 +560,9 @@ def render_box_corner(pose, intrinsics, width, height, textures, extent=2.0) -> 
     return image.astype(np.uint8)
 
 
-def write_box_corner_capture(root: Path, views=12, width=320, height=240) -> np.ndarray:
+def write_box_corner_capture(root: Path, views=12, width=320, height=240, lens=None, claimed_lens=None) -> np.ndarray:
+    """The box corner's capture; its images taken through `lens` (OpenCV k1, k2, p1, p2), its
+    transforms.json claiming `claimed_lens` (default: the lens itself)."""
     rng = np.random.default_rng(0)
     textures = [cv2.resize(rng.uniform(0, 255, (128, 128, 3)).astype(np.float32), (512, 512),
                            interpolation=cv2.INTER_CUBIC).clip(0, 255) for _ in range(3)]
@@ -567,10 +570,12 @@ def write_box_corner_capture(root: Path, views=12, width=320, height=240) -> np.
     poses = np.stack([look_at([0.6 + 2.6 * np.cos(a), 0.6 + 2.6 * np.sin(a), 1.6 + 0.3 * np.sin(3 * a)],
                               [0.5, 0.5, 0.5]) for a in angles])
     k = (220.0, 220.0, width / 2, height / 2)
-    write_nerfstudio(root, poses, width=width, height=height, intrinsics=k)
+    claimed = claimed_lens if claimed_lens is not None else lens
+    write_nerfstudio(root, poses, width=width, height=height, intrinsics=k,
+                     distortion=tuple(claimed) if claimed is not None else (0.0, 0.0, 0.0, 0.0))
     for i, pose in enumerate(poses):
         cv2.imwrite(str(root / "images" / f"frame_{i:05d}.png"), render_box_corner(pose, np.array(k), width, height,
-                                                                                  textures))
+                                                                                  textures, distortion=lens))
     return poses
 
 
@@ -617,6 +622,44 @@ def test_colmap_refinement_repairs_perturbed_poses(tmp_path, matcher):
     points = cameras.transform_points(align_poses(group["camera_to_world"][:], truth), group["points_world"][:])
     assert np.median(np.abs(points).min(axis=1)) < 0.005
     assert not list(tmp_path.glob(".colmap-refine-*"))  # the scratch database is gone
+
+
+def test_colmap_refinement_measures_a_lens_the_capture_misstates(tmp_path):
+    """A phone-like lens with strong tangential terms that the capture's calibration leaves out
+    (as a poor COLMAP model would): with poses.refine_distortion the matches measure the lens, and
+    poses.zarr's calibration gives the frame's pixels about the rays the lens really gives them;
+    without it the capture's calibration is kept as given."""
+    k, lens, claimed = (220.0, 220.0, 160.0, 120.0), (-0.05, 0.02, 0.011, 0.0096), (-0.05, 0.02, 0.0, 0.0)
+    write_box_corner_capture(tmp_path / "cap", lens=lens, claimed_lens=claimed)
+    options = {"refine": "colmap", "bounds": [[0, 0, 0], [2, 2, 2]]}
+    kept = open_artifact(import_poses({"format": "nerfstudio"}, tmp_path / "cap", options, tmp_path / "kept.zarr",
+                                      threads=2), stage="poses")
+    assert "distortion" not in meta(kept)["refinement"]
+    np.testing.assert_allclose(kept["distortion"][:], np.tile(claimed, (12, 1)))
+    out = import_poses({"format": "nerfstudio"}, tmp_path / "cap", {**options, "refine_distortion": True},
+                       tmp_path / "poses.zarr", threads=2)
+    group = open_artifact(out, stage="poses")
+    stats = meta(group)["refinement"]
+    assert meta(group)["config"]["poses"]["refine_distortion"] is True
+    assert len(stats["distortion"]) == 1 and stats["distortion"][0]["given"] == list(claimed)
+    distortion = group["distortion"][:]
+    assert (distortion == distortion[0]).all()  # one lens, shared by the images taken with it
+    np.testing.assert_allclose(group["intrinsics"][:], np.tile(k, (12, 1)))  # focal and centre as given
+
+    def ray_error_px(calibration):
+        """Per pixel of the frame: the angle, in pixels at the focal length, between the ray the true
+        lens gives it and the ray that `calibration` gives it."""
+        truth = cameras.pixel_rays(np.eye(4), k, 320, 240, lens)[1]
+        found = cameras.pixel_rays(np.eye(4), k, 320, 240, calibration)[1]
+        return k[0] * np.arccos(np.clip((truth * found).sum(-1), -1.0, 1.0))
+
+    before, after = ray_error_px(claimed), ray_error_px(distortion[0])
+    assert before.mean() > 1.0 and before.max() > 4.0  # the misstated lens: corners several px off
+    # what is left is mostly what the refined poses absorb (a turn of a camera shifts its pixels alike)
+    assert after.mean() < 0.5 and after.max() < 0.4 * before.max()
+    # the reprojection error cannot tell the two apart: points and poses bend round a smooth lens
+    # error (0.17 px here with the misstated lens), so the lens is judged by its rays, as above
+    assert stats["reprojection_error_after_px"] < 0.5
 
 
 # ----------------------------------------------------------------------------- LLFF poses_bounds.npy

@@ -13,7 +13,10 @@ intrinsics held fixed), so this is "point triangulator + bundle adjuster", not S
    the first pass, because the given poses may be off by a degree or more.
 4. Bundle adjustment of poses and points (robust Cauchy loss, intrinsics fixed), outlier
    filtering, a second triangulation with COLMAP's default thresholds from the refined poses, and
-   a final bundle adjustment.
+   a final bundle adjustment. With `refine_distortion` every adjustment also fits each calibration's
+   OpenCV distortion (shared by the images taken with it; focal lengths and principal point stay):
+   a phone's COLMAP model can carry tangential terms that undistortion would turn into pixels
+   several px off at the frame's corners, and the images' own matches measure the lens.
 5. Bundle adjustment leaves the gauge (scale, rotation, position of the world) free, so the result
    is mapped back by the similarity that best aligns the refined cameras (centres and axes) to the
    given ones: the world frame (and its units) of the capture is kept.
@@ -58,6 +61,7 @@ class RefinementResult:
     camera_to_world: np.ndarray  # (N, 4, 4) refined, in the input's world frame
     points_world: np.ndarray  # (M, 3) triangulated points, same frame
     stats: dict
+    distortion: np.ndarray | None = None  # (N, 4) k1, k2, p1, p2 when they were refined, else None
 
 
 def choose_matcher(matcher: str, n_images: int) -> str:
@@ -94,13 +98,14 @@ def pairs_from_poses(camera_to_world: np.ndarray, neighbours: int = POSES_NEIGHB
     return sorted(pairs)
 
 
-def _camera_model(intrinsics, distortion, size):
-    """pycolmap camera: PINHOLE, or OPENCV when there is distortion (COLMAP pixels also centre at +0.5)."""
+def _camera_model(intrinsics, distortion, size, opencv: bool = False):
+    """pycolmap camera: PINHOLE, or OPENCV when there is distortion or `opencv` (a lens to refine)
+    (COLMAP pixels also centre at +0.5)."""
     import pycolmap
 
     fx, fy, cx, cy = (float(v) for v in intrinsics)
     width, height = (int(v) for v in size)
-    if np.any(np.asarray(distortion) != 0):
+    if opencv or np.any(np.asarray(distortion) != 0):
         camera = pycolmap.Camera.create_from_model_name(0, "OPENCV", fx, width, height)
         camera.params = [fx, fy, cx, cy, *(float(v) for v in distortion)]
     else:
@@ -109,8 +114,9 @@ def _camera_model(intrinsics, distortion, size):
     return camera
 
 
-def build_reconstruction(image_paths, camera_to_world, intrinsics, image_size, distortion):
-    """A posed pycolmap.Reconstruction (no points): one camera per distinct calibration, image i has id i+1."""
+def build_reconstruction(image_paths, camera_to_world, intrinsics, image_size, distortion, opencv: bool = False):
+    """A posed pycolmap.Reconstruction (no points): one camera per distinct calibration, image i has id i+1.
+    `opencv`: every camera OPENCV, so that its distortion can be refined."""
     import pycolmap
 
     reconstruction = pycolmap.Reconstruction()
@@ -118,7 +124,7 @@ def build_reconstruction(image_paths, camera_to_world, intrinsics, image_size, d
     for index, (name, pose) in enumerate(zip(image_paths, camera_to_world)):
         key = (*np.round(intrinsics[index], 9), *np.round(distortion[index], 12), *image_size[index])
         if key not in camera_ids:
-            camera = _camera_model(intrinsics[index], distortion[index], image_size[index])
+            camera = _camera_model(intrinsics[index], distortion[index], image_size[index], opencv)
             camera.camera_id = len(camera_ids) + 1
             reconstruction.add_camera_with_trivial_rig(camera)
             camera_ids[key] = camera.camera_id
@@ -213,13 +219,15 @@ def _triangulation_options(threads: int, loose: bool):
     return options
 
 
-def _bundle_adjust(reconstruction, threads: int) -> None:
+def _bundle_adjust(reconstruction, threads: int, refine_distortion: bool = False) -> None:
     import pycolmap
 
     options = pycolmap.BundleAdjustmentOptions()
-    options.refine_focal_length = False  # the capture's calibration is trusted
+    # the capture's focal lengths and principal point are trusted (freed, a box corner's focal drifted
+    # 1 % with the poses' depth, and the principal point slides along what a capture barely constrains)
+    options.refine_focal_length = False
     options.refine_principal_point = False
-    options.refine_extra_params = False
+    options.refine_extra_params = refine_distortion  # else the distortion is trusted too
     options.refine_sensor_from_rig = False
     options.print_summary = False
     options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
@@ -256,10 +264,29 @@ def _summary(reconstruction) -> dict:
     }
 
 
+def _distortion_per_image(reconstruction, n_images: int) -> np.ndarray:
+    """(N, 4) OpenCV k1, k2, p1, p2 of each image's (OPENCV) camera."""
+    return np.array([reconstruction.cameras[reconstruction.images[i + 1].camera_id].params[4:8]
+                     for i in range(n_images)], dtype=np.float64)
+
+
+def _distortion_record(capture: Capture, distortion: np.ndarray) -> list[dict]:
+    """Each camera (a distinct given calibration), its given and its refined distortion."""
+    records, seen = [], set()
+    for index in range(len(distortion)):
+        given = (*np.round(capture.intrinsics[index], 9), *np.round(capture.distortion[index], 12))
+        if given not in seen:
+            seen.add(given)
+            records.append({"first_image": capture.image_paths[index], "given": capture.distortion[index].tolist(),
+                            "refined": distortion[index].tolist()})
+    return records
+
+
 def refine_poses(capture: Capture, camera_to_world: np.ndarray, matcher: str = "auto",
                  workdir_parent: str | Path | None = None, threads: int = -1,
-                 max_features: int = 8192) -> RefinementResult:
-    """Refine `camera_to_world` (N, 4, 4) for the images of `capture`.
+                 max_features: int = 8192, refine_distortion: bool = False) -> RefinementResult:
+    """Refine `camera_to_world` (N, 4, 4) for the images of `capture`; with `refine_distortion`, also
+    each calibration's distortion (the result's `distortion`).
 
     Intermediate files (database, models) go to a temporary folder under `workdir_parent`.
     """
@@ -274,7 +301,7 @@ def refine_poses(capture: Capture, camera_to_world: np.ndarray, matcher: str = "
         log.warning("COLMAP: image names with spaces cannot go into a pair list; spatial matching instead")
         matcher = "spatial"
     reconstruction = build_reconstruction(capture.image_paths, camera_to_world, capture.intrinsics,
-                                          capture.image_size, capture.distortion)
+                                          capture.image_size, capture.distortion, opencv=refine_distortion)
     if workdir_parent is not None:
         Path(workdir_parent).mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=".colmap-refine-", dir=workdir_parent) as tmp:
@@ -315,16 +342,18 @@ def refine_poses(capture: Capture, camera_to_world: np.ndarray, matcher: str = "
             raise RuntimeError(f"{capture.root}: COLMAP triangulated no points from the given poses")
         log.info("COLMAP: triangulated from the given poses: %s", before)
 
-        _bundle_adjust(reconstruction, threads)
+        _bundle_adjust(reconstruction, threads, refine_distortion)
         filtered = _filter_outliers(reconstruction)
-        _bundle_adjust(reconstruction, threads)
+        _bundle_adjust(reconstruction, threads, refine_distortion)
         (tmp / "tri2").mkdir()
         reconstruction = pycolmap.triangulate_points(
             reconstruction, str(database), str(capture.root), str(tmp / "tri2"),
             clear_points=True, options=_triangulation_options(threads, loose=False),
         )
-        _bundle_adjust(reconstruction, threads)
+        _bundle_adjust(reconstruction, threads, refine_distortion)
         filtered += _filter_outliers(reconstruction)
+        if refine_distortion:  # the lens fitted once more without the outliers it was first fitted with
+            _bundle_adjust(reconstruction, threads, refine_distortion)
         after = _summary(reconstruction)
         log.info("COLMAP: after bundle adjustment: %s", after)
 
@@ -359,4 +388,11 @@ def refine_poses(capture: Capture, camera_to_world: np.ndarray, matcher: str = "
         "gauge_alignment_scale": float(np.cbrt(np.linalg.det(world_from_refined[:3, :3]))),
         "pycolmap": pycolmap.__version__,
     }
-    return RefinementResult(camera_to_world=refined, points_world=points, stats=stats)
+    if not refine_distortion:
+        return RefinementResult(camera_to_world=refined, points_world=points, stats=stats)
+    distortion = _distortion_per_image(reconstruction, n)
+    stats["distortion"] = _distortion_record(capture, distortion)
+    for record in stats["distortion"]:
+        log.info("COLMAP: distortion of %s's camera refined: %s -> %s",
+                 record["first_image"], record["given"], record["refined"])
+    return RefinementResult(camera_to_world=refined, points_world=points, stats=stats, distortion=distortion)

@@ -1,0 +1,130 @@
+"""Benchmark: a capture whose calibration misstates its lens, built as given and with its distortion
+refined by COLMAP (`poses.refine: colmap` + `poses.refine_distortion: true`).
+
+Issue 30's fruit capture came with a phone's COLMAP model (k1 -0.0024, k2 -0.021, p1 0.011, p2 0.0096)
+that undistortion made worse than no undistortion at all. captures.py's orchard-lens renders the
+orchard through exactly that lens and states it exactly, and reaches the pinhole orchard's quality:
+the undistortion is right for a lens stated right. What is left is a lens stated wrong. Here the same
+generated orchard (80 views of 605 x 806 through the phone lens) claims the lens without its
+tangential terms (p1 = p2 = 0, transforms.json rewritten after the capture is generated), and is
+built twice, every other setting the orchard-lens's:
+
+* `as given`: the claimed lens undistorts the images (the pixels' rays up to several px off);
+* `distortion refined`: COLMAP triangulates from the given poses and bundle-adjusts the poses with
+  the lens's distortion freed; downscaling undistorts with what it measured.
+
+    python benchmarks/lens.py [--quick] [--workdir DIR] [--train-seconds S]
+
+Writes benchmarks/results/lens.json: per build `psnr`, `psnr_object`, `miou_gt_classes`, `ssim`,
+`train_view_psnr`, `steps`, the distortion the images were undistorted with and its ray error against
+the true lens (`ray_error_px_mean`, `ray_error_px_max`: the angle between the ray the true lens gives
+each pixel of the full frame and the ray the calibration gives it, in pixels at the focal length), and
+the orchard-lens's own numbers at the same training time from captures.json (`reference`). Training
+gets 300 s each (`--train-seconds`), the panel's 5-minute snapshot time; `--quick` 60 s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from captures import PHONE_LENS, scene_configs
+from common import REPO, machine_info, result_path, run_workflow, write_result, write_workdir
+
+CLAIMED_LENS = [PHONE_LENS[0], PHONE_LENS[1], 0.0, 0.0]  # the tangential terms left out
+BUILDS = {
+    "as-given": {},
+    "distortion-refined": {"poses": {"refine": "colmap", "refine_distortion": True}},
+}
+
+
+def misstate_lens(capture: Path, distortion) -> None:
+    """Rewrite the generated capture's transforms.json to claim `distortion` (k1, k2, p1, p2)."""
+    path = capture / "transforms.json"
+    transforms = json.loads(path.read_text())
+    transforms.update(zip(("k1", "k2", "p1", "p2"), (float(v) for v in distortion)))
+    path.write_text(json.dumps(transforms, indent=1))
+
+
+def ray_error_px(intrinsics, size, true_lens, lens) -> tuple[float, float]:
+    """Mean and largest angle (pixels at the focal length) between the rays that `true_lens` and
+    `lens` give each pixel of a frame of `size` (width, height)."""
+    from srfpipe import cameras
+
+    truth = cameras.pixel_rays(np.eye(4), intrinsics, *size, true_lens)[1]
+    found = cameras.pixel_rays(np.eye(4), intrinsics, *size, lens)[1]
+    error = float(intrinsics[0]) * np.arccos(np.clip((truth * found).sum(-1), -1.0, 1.0))
+    return float(error.mean()), float(error.max())
+
+
+def build_report(workdir: Path, name: str) -> dict:
+    from srfpipe.artifacts import open_artifact, read_provenance
+
+    results = workdir / "results" / name
+    metrics = json.loads((results / "eval" / "metrics.json").read_text())
+    poses = open_artifact(results / "poses.zarr", stage="poses")
+    distortion = np.asarray(poses["distortion"][0], dtype=np.float64)
+    intrinsics = np.asarray(poses["intrinsics"][0], dtype=np.float64)
+    size = tuple(int(v) for v in poses["image_size"][0])
+    mean, largest = ray_error_px(intrinsics, size, PHONE_LENS, distortion)
+    refinement = read_provenance(results / "poses.zarr").get("refinement") or {}
+    srf = read_provenance(results / "srf.zarr")
+    report = {key: metrics.get(key) for key in ("psnr", "psnr_object", "ssim", "miou_gt_classes", "train_view_psnr",
+                                                 "generalization_gap_db")}
+    report.update(steps=srf.get("iterations_done"), distortion=distortion.tolist(),
+                  ray_error_px_mean=mean, ray_error_px_max=largest,
+                  reprojection_error_px=refinement.get("reprojection_error_after_px"))
+    return report
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="60 s of training per build")
+    parser.add_argument("--workdir", type=Path, default=REPO / "benchmarks" / "work" / "lens")
+    parser.add_argument("--train-seconds", type=float, default=300.0)
+    args = parser.parse_args()
+    seconds = 60.0 if args.quick else args.train_seconds
+
+    base = scene_configs(["orchard-lens"], quick=False)["orchard-lens"]
+    scenes = {}
+    for build, overrides in BUILDS.items():
+        scene = json.loads(json.dumps(base))
+        for section, values in overrides.items():
+            scene[section] = {**scene.get(section, {}), **values}
+        scene.setdefault("train", {}).update(time_budget=seconds)
+        scene["train"].pop("snapshot_seconds", None)
+        scenes[f"lens-{build}"] = scene
+    write_workdir(args.workdir, scenes, "eval")
+    log = args.workdir / "snakemake.log"
+    for name in scenes:
+        run_workflow(args.workdir, [f"results/{name}/capture"], log=log)
+        misstate_lens(args.workdir / "results" / name / "capture", CLAIMED_LENS)
+    for name in scenes:
+        run_workflow(args.workdir, [f"results/{name}/eval"], log=log)
+
+    builds = {name.removeprefix("lens-"): build_report(args.workdir, name) for name in scenes}
+    captures = json.loads((REPO / "benchmarks" / "results" / "captures.json").read_text())
+    panel = captures.get("panel", {}).get("orchard-lens", {})
+    report = {
+        "machine": machine_info(),
+        "true_lens": PHONE_LENS, "claimed_lens": CLAIMED_LENS, "train_seconds": seconds,
+        "builds": builds,
+        "reference": {"orchard_lens_psnr_5min": panel.get("srfpipe_psnr_5min"),
+                      "orchard_lens_psnr_10min": panel.get("psnr"),
+                      "source": "captures.json panel: the same images with the lens stated right"},
+        "psnr_gain_db": builds["distortion-refined"]["psnr"] - builds["as-given"]["psnr"],
+    }
+    path = write_result(result_path("lens", args.quick), report)
+    print(f"{'build':<20} {'psnr':>7} {'object':>7} {'mIoU':>6} {'train':>7} {'steps':>6} {'ray err mean/max px':>20}")
+    for name, row in builds.items():
+        print(f"{name:<20} {row['psnr']:7.2f} {row['psnr_object'] or float('nan'):7.2f} "
+              f"{row['miou_gt_classes'] or float('nan'):6.2f} {row['train_view_psnr'] or float('nan'):7.2f} "
+              f"{row['steps'] or 0:6d} {row['ray_error_px_mean']:9.2f} / {row['ray_error_px_max']:.2f}")
+    print(f"orchard-lens, lens stated right: {panel.get('srfpipe_psnr_5min')} dB at 5 min; wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
