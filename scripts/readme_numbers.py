@@ -35,7 +35,7 @@ def headline_rows() -> list[tuple[str, str, str]]:
     """(benchmark, what, headline) per row, the headline's numbers read from the benchmark's JSON."""
     train, captures, peers, tradeoff = load("train"), load("captures"), load("peers"), load("tradeoff")
     occupancy, sim, masks, poses = load("occupancy"), load("sim"), load("masks"), load("poses")
-    wild, cluster, reliability = load("wild"), load("cluster"), load("reliability")
+    wild, cluster, reliability, lens = load("wild"), load("cluster"), load("reliability"), load("lens")
 
     panel = captures["panel"]
     psnrs = [entry["psnr"] for entry in panel.values()]
@@ -69,6 +69,10 @@ def headline_rows() -> list[tuple[str, str, str]]:
         ("poses", "COLMAP refinement of perturbed orchard poses",
          f"rotation error {poses['rot_err_deg_before']:.3f} -> {poses['rot_err_deg_after']:.3f} deg, translation "
          f"{poses['trans_err_before'] * 100:.2f} % -> {poses['trans_err_after'] * 100:.2f} %"),
+        ("lens", "phone lens misstated (no tangential terms)",
+         f"COLMAP refinement, lens held {lens['builds']['poses-refined']['psnr']:.2f} dB, distortion refined "
+         f"{lens['builds']['distortion-refined']['psnr']:.2f} (stated right "
+         f"{lens['reference']['orchard_lens_psnr_5min']:.2f}), {lens['train_seconds'] / 60:.0f} min each"),
         ("wild", "video, photos, few labels",
          f"video {wild['orchard_video_rot_err_deg']:.2f} deg, {wild['orchard_video_psnr']:.1f} dB, mIoU "
          f"{wild['orchard_video_miou']:.2f} (posed {posed['psnr']:.1f}, {posed['miou']:.2f}); fox photos "

@@ -112,7 +112,11 @@ def _suggestion(error) -> str:
 def contradictions(scene: dict) -> list[str]:
     """Settings that are each valid but contradict each other, as 'key: problem' lines."""
     problems = []
-    bounds = scene.get("poses", {}).get("bounds")
+    poses = scene.get("poses", {})
+    if poses.get("refine_distortion") and poses.get("refine") != "colmap":
+        problems.append(f"poses.refine_distortion is true but poses.refine is {poses.get('refine')!r}: the distortion "
+                        "is fitted in COLMAP's refinement of the given poses (poses.refine: colmap)")
+    bounds = poses.get("bounds")
     if bounds is not None and not all(lo < hi for lo, hi in zip(bounds[0], bounds[1])):
         problems.append(f"poses.bounds: the minimum {bounds[0]} must be below the maximum {bounds[1]} on every axis")
     segmentation = scene.get("segmentation", {})

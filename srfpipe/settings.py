@@ -128,9 +128,8 @@ class PosesSettings(SettingsSection):
     refine: str = 'none'
     """refine imported poses with COLMAP (pycolmap) triangulation + bundle adjustment"""
     refine_distortion: bool | None = field(default=None, metadata={"unset": True})
-    """refine: colmap also fits each calibration's distortion (OpenCV k1, k2, p1, p2; a pinhole
-    gains them) in every bundle adjustment, shared by the images that share the calibration, and
-    poses.zarr keeps the refined coefficients, which ..."""
+    """with refine: colmap, fit each calibration's distortion too (OpenCV k1, k2, p1, p2; a pinhole
+    gains them) in every bundle adjustment, shared by the images that share the calibration"""
     matcher: str = 'auto'
     """COLMAP pair selection. auto = exhaustive up to 20 images, poses otherwise"""
     min_images: int = 2

@@ -352,7 +352,8 @@ def test_out_of_range_value_names_the_key(scene, key):
     ({"segmentation": {"backend": "import"}}, "segmentation.import.path is not set"),
     ({"occupancy": {"avoid": ["branch", "apple"], "reach": ["apple"]}}, r"\['apple'\] are both to avoid and to reach"),
     ({"train": {"near": 5.0, "far": 2.0}}, "train.near 5.0 must be below train.far 2.0"),
-], ids=["bounds", "thresholds", "import_path", "avoid_reach", "near_far"])
+    ({"poses": {"refine_distortion": True}}, r"poses.refine_distortion is true but poses.refine is 'none'"),
+], ids=["bounds", "thresholds", "import_path", "avoid_reach", "near_far", "refine_distortion"])
 def test_contradictory_settings(scene, problem):
     assert_refused(lambda: validate_scene(scene, "s.yaml"), None, "s.yaml", problem, ConfigError)
 
