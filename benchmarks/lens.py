@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from captures import PHONE_LENS, scene_configs
-from common import REPO, machine_info, result_path, run_workflow, write_result, write_workdir
+from common import REPO, machine_info, merge, result_path, run_workflow, write_result, write_workdir
 
 CLAIMED_LENS = [PHONE_LENS[0], PHONE_LENS[1], 0.0, 0.0]  # the tangential terms left out
 BUILDS = {
@@ -106,9 +106,7 @@ def main() -> None:
     base = scene_configs(["orchard-lens"], quick=False)["orchard-lens"]
     scenes = {}
     for build, overrides in BUILDS.items():
-        scene = json.loads(json.dumps(base))
-        for section, values in overrides.items():
-            scene[section] = {**scene.get(section, {}), **values}
+        scene = merge(base, overrides)
         scene.setdefault("train", {}).update(time_budget=seconds)
         scene["train"].pop("snapshot_seconds", None)
         scenes[f"lens-{build}"] = scene

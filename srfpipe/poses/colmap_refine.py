@@ -264,22 +264,18 @@ def _summary(reconstruction) -> dict:
     }
 
 
-def _distortion_per_image(reconstruction, n_images: int) -> np.ndarray:
-    """(N, 4) OpenCV k1, k2, p1, p2 of each image's (OPENCV) camera."""
-    return np.array([reconstruction.cameras[reconstruction.images[i + 1].camera_id].params[4:8]
-                     for i in range(n_images)], dtype=np.float64)
-
-
-def _distortion_record(capture: Capture, distortion: np.ndarray) -> list[dict]:
-    """Each camera (a distinct given calibration), its given and its refined distortion."""
-    records, seen = [], set()
-    for index in range(len(distortion)):
-        given = (*np.round(capture.intrinsics[index], 9), *np.round(capture.distortion[index], 12))
-        if given not in seen:
-            seen.add(given)
-            records.append({"first_image": capture.image_paths[index], "given": capture.distortion[index].tolist(),
-                            "refined": distortion[index].tolist()})
-    return records
+def _refined_distortion(reconstruction, capture: Capture) -> tuple[np.ndarray, list[dict]]:
+    """(N, 4) OpenCV k1, k2, p1, p2 of each image's camera, and per camera its first image with the
+    given and the refined coefficients (for poses.zarr's stats)."""
+    distortion, records, seen = [], [], set()
+    for index, name in enumerate(capture.image_paths):
+        camera_id = reconstruction.images[index + 1].camera_id
+        distortion.append(np.asarray(reconstruction.cameras[camera_id].params[4:8], dtype=np.float64))
+        if camera_id not in seen:
+            seen.add(camera_id)
+            records.append({"first_image": name, "given": capture.distortion[index].tolist(),
+                            "refined": distortion[-1].tolist()})
+    return np.stack(distortion), records
 
 
 def refine_poses(capture: Capture, camera_to_world: np.ndarray, matcher: str = "auto",
@@ -390,8 +386,7 @@ def refine_poses(capture: Capture, camera_to_world: np.ndarray, matcher: str = "
     }
     if not refine_distortion:
         return RefinementResult(camera_to_world=refined, points_world=points, stats=stats)
-    distortion = _distortion_per_image(reconstruction, n)
-    stats["distortion"] = _distortion_record(capture, distortion)
+    distortion, stats["distortion"] = _refined_distortion(reconstruction, capture)
     for record in stats["distortion"]:
         log.info("COLMAP: distortion of %s's camera refined: %s -> %s",
                  record["first_image"], record["given"], record["refined"])
