@@ -292,6 +292,14 @@ class TrainSettings(SettingsSection):
     function of seed and step)"""
     lambda_sem: float = 1.0
     """weight of the semantic BCE (paper lambda)"""
+    semantic_targets: str | None = field(default=None, metadata={"unset": True})
+    """what the semantic heads' BCE compares each ray with: probabilities (each class's mask
+    probability, labels.zarr probability: a pixel half covered by a thin part, or a soft mask's
+    blurred rim, is neither in nor out) or labels (the composited ..."""
+    semantic_positive_weight: float | None = field(default=None, metadata={"unset": True})
+    """weight of each class's positive term in the BCE (torch's pos_weight): w > 1 marks a class
+    where at least 1 / (1 + w) of the mask probability over the views that see a point says so,
+    for masks that miss thin parts more often than they mark ..."""
     device: str = 'auto'
     """auto | cpu | cuda | cuda:N"""
     lr: float = 0.01

@@ -30,6 +30,31 @@ def test_huge_logits_give_finite_loss_and_gradient(value):
         logits.grad = None
 
 
+@pytest.mark.parametrize("weight", [1.0, 2.0, 4.0])
+def test_positive_weight_moves_the_optimum_of_a_soft_target_to_w_y_over_w_y_plus_1_minus_y(weight):
+    # a mask's probability y (a blurred rim, a pixel half covered): the head settles where the
+    # weighted BCE is flat, so a class whose masks say y >= 1 / (1 + w) is labelled (p >= 0.5)
+    y = torch.tensor([[0.1, 0.25, 1.0 / (1.0 + weight), 0.5, 0.9]])
+    optimum = weight * y / (weight * y + 1 - y)
+    logits = torch.log(optimum / (1 - optimum)).requires_grad_(True)
+    losses.semantic_loss(logits, y, positive_weight=weight).backward()
+    assert logits.grad.abs().max() < 1e-6
+    assert math.isclose(float(optimum[0, 2]), 0.5, rel_tol=1e-6)
+
+
+@pytest.mark.parametrize("value", [1e4, -1e4])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16, torch.float16])
+def test_soft_targets_and_positive_weight_stay_finite_for_saturated_logits(value, dtype):
+    logits = torch.full((4, 3), value).to(dtype).requires_grad_(True)
+    targets = torch.tensor([0.0, 0.3, 1.0]).expand(4, 3)
+    loss = losses.semantic_loss(logits, targets, positive_weight=2.0)
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(logits.grad.float()).all()
+    # a saturated logit costs ~|logit| per unit of the target it contradicts, weighted 2 on the positive side
+    contradicted = (2.0 * (1.0 + 0.3) if value < 0 else (1.0 + 0.7)) * abs(float(logits[0, 0]))
+    assert math.isclose(float(loss.detach()), contradicted, rel_tol=1e-3)
+
+
 def test_class_without_positive_pixels_still_trains_towards_negative():
     logits = torch.zeros(8, 3, requires_grad=True)
     labels = torch.zeros(8, 3)

@@ -363,6 +363,10 @@ def test_composite_writes_labels_multihot_counts_and_drops_empty_classes(tmp_pat
     assert label[0, 0].tolist() == [1, 1, 1, 3, 3] and (label[1] == 0).all()  # 0.6 < leaf's 0.65
     assert multihot.shape == (2, 4, 5, 2)
     assert multihot[0, 0, 2].tolist() == [1, 1]
+    # the heads' soft targets: every kept class's probability, under its threshold too (leaf's 0.6)
+    probability = np.asarray(group["probability"][:])
+    assert probability.shape == multihot.shape and probability.dtype == np.uint8
+    assert np.array_equal(probability, np.round(np.stack([apple, leaf], -1) * 255).astype(np.uint8))
     assert info["pixel_counts"] == {"apple": 3, "leaf": 3}
     assert info["label_pixel_counts"] == {"background": 35, "apple": 3, "leaf": 2}
     table = info["image-label"]

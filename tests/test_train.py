@@ -57,6 +57,40 @@ def test_overfitting_one_tiny_image_raises_psnr(tmp_path):
     assert end > 24.0
 
 
+def test_a_class_whose_masks_stay_under_the_threshold_is_learnt_from_their_probabilities(tmp_path):
+    # soft masks (a blurred rim, a thin part's pixels half covered) say 0.45 where the leaves
+    # are: composited at 0.5 they mark nothing, and heads trained on those bits never learn the class
+    from srfpipe.artifacts import open_artifact
+    from srfpipe.evaluate import world_from_scene_pose
+    from srfpipe.srf.data import load_posed_images
+    from srfpipe.srf.synthetic import CLASSES, write_labels
+
+    images, labels = write_scene(tmp_path, views=2, width=16, height=12)
+    label = np.asarray(open_artifact(labels)["label"][...])
+    truth = label[..., None] == np.arange(1, len(CLASSES) + 1)
+    probability = np.where(truth, np.array([255, 255, 115], np.uint8), 0).astype(np.uint8)  # leaf 0.45
+    soft = write_labels(tmp_path / "soft.zarr", label, CLASSES, ["frame_00000", "frame_00001"], inputs=[images],
+                        probability=probability)
+    data = load_posed_images(images, soft)
+    pose = world_from_scene_pose(data.world_from_scene, data.poses_scene[1].numpy())
+    leaves = label[1] == 3
+    assert leaves.sum() >= 20
+    leaf_probability = {}
+    for targets in (None, "labels"):  # the default, and the composited bits
+        out = tmp_path / f"{targets}.zarr"
+        # view 0 held out: every step trains on view 1's 192 pixels, as the overfitting test does
+        options = tiny_options(iterations=300, rays_per_batch=192, lr_final=0.005, checkpoint_every=0,
+                               **({"semantic_targets": targets} if targets else {}))
+        train(images, soft, out, options, holdout_every=2)
+        field = SemanticRadianceField.load(out, device="cpu")
+        assert field.attrs["config"]["semantic_targets"] == (targets or "probabilities")
+        assert field.attrs["config"]["semantic_positive_weight"] == (1.0 if targets else 2.0)
+        rendered = field.render(pose, data.intrinsics[1].numpy(), 16, 12)
+        leaf_probability[targets] = float(np.median(rendered["semantic"][..., 2][leaves]))
+    # the weighted BCE's optimum for y = 0.45, w = 2: 0.9 / 1.45 = 0.62; the bits' optimum: 0
+    assert abs(leaf_probability[None] - 0.9 / 1.45) < 0.06 and leaf_probability["labels"] < 0.1, leaf_probability
+
+
 def test_learning_rate_holds_then_decays_to_lr_final():
     assert learning_rate(0.0, 1e-2, 1e-3) == pytest.approx(1e-2)
     assert learning_rate(0.5, 1e-2, 1e-3) == pytest.approx(1e-2 * 0.1**0.5)
@@ -377,7 +411,7 @@ def camera_ring_data(focal: float, distance: float = 3.0, n: int = 8):
                            poses_scene=torch.as_tensor(poses, dtype=torch.float32),
                            intrinsics=torch.tensor([[focal, focal, 64.0, 64.0]] * n),
                            bounds_source="config", gt_label=None, background_empty=False, classes=[],
-                           backdrop=None, multihot=None)
+                           backdrop=None, multihot=None, probability=None)
 
 
 @pytest.mark.parametrize("focal, cells, levels", [(200.0, 96, 1), (300.0, 192, 3), (3000.0, 192, 3),
@@ -407,7 +441,7 @@ def test_a_small_object_gets_its_share_of_every_batch_and_a_large_one_changes_no
     n, h, w = 4, 40, 50
     multihot = torch.zeros(n, h, w, 1, dtype=torch.uint8)
     multihot[:, 20, 25] = 1  # one pixel a frame: 25 with the 2-pixel dilation, 1.25 % of the pixels
-    data = SimpleNamespace(multihot=multihot, height=h, width=w, labelled=None, backdrop=None,
+    data = SimpleNamespace(multihot=multihot, probability=None, height=h, width=w, labelled=None, backdrop=None,
                            images=torch.zeros(n, h, w, 3, dtype=torch.uint8),
                            poses_scene=torch.eye(4).repeat(n, 1, 1), intrinsics=torch.tensor([[40.0, 40.0, 25.0, 20.0]] * n))
     views = np.arange(n)
@@ -439,7 +473,8 @@ def test_on_an_empty_backdrop_the_focus_finds_the_object_in_frames_without_masks
     images[:, 10:30, 25] = 200  # a thin stem, 20 pixels tall, in every frame
     multihot = torch.zeros(n, h, w, 1, dtype=torch.uint8)
     multihot[0, 10:20, 25] = 1  # one frame has a mask, and it marks the stem's upper half only
-    data = SimpleNamespace(multihot=multihot, height=h, width=w, labelled=np.array([True] + [False] * (n - 1)),
+    data = SimpleNamespace(multihot=multihot, probability=None, height=h, width=w,
+                           labelled=np.array([True] + [False] * (n - 1)),
                            images=images, backdrop=None, poses_scene=torch.eye(4).repeat(n, 1, 1),
                            intrinsics=torch.tensor([[40.0, 40.0, 25.0, 20.0]] * n))
     views = np.arange(n)
@@ -469,7 +504,7 @@ def test_pixel_jitter_sends_each_training_ray_through_a_random_point_of_its_own_
 
     n, h, w = 3, 40, 50
     fx, fy, cx, cy = 40.0, 45.0, 25.0, 20.0
-    data = SimpleNamespace(multihot=None, height=h, width=w, labelled=None, backdrop=None,
+    data = SimpleNamespace(multihot=None, probability=None, height=h, width=w, labelled=None, backdrop=None,
                            images=torch.randint(0, 255, (n, h, w, 3), dtype=torch.uint8),
                            poses_scene=torch.eye(4).repeat(n, 1, 1), intrinsics=torch.tensor([[fx, fy, cx, cy]] * n))
     views = np.arange(n)

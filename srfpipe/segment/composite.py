@@ -5,7 +5,9 @@ leaf 3); the masks are passed in that order. A pixel is in class c when p_c >= t
 threshold). The label image, which holds one class per pixel, resolves overlaps by taking the class
 with the highest probability among those above their thresholds (the earlier prompt wins a tie);
 a pixel above no threshold is background (0). The multi-hot bits keep every class a pixel is in,
-for the C independent semantic heads.
+for the C independent semantic heads; `probability` keeps each kept class's mask probability
+(round(255 p)), which the heads train against by default (train.semantic_targets): a pixel half
+covered by a thin stem, or a soft mask's blurred rim, is neither in nor out.
 
 A class that no frame contains (at most `labels.min_pixels` pixels over all frames) is reported,
 recorded in `dropped_classes` and left out of the label image, the multi-hot channels and
@@ -233,6 +235,9 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
         multihot = group.create_array("multihot", shape=(n, height, width, len(kept)),
                                       chunks=(1, height, width, max(1, len(kept))), dtype="uint8",
                                       dimension_names=("image", "y", "x", "class"), fill_value=0)
+        probability = group.create_array("probability", shape=(n, height, width, len(kept)),
+                                         chunks=(1, height, width, max(1, len(kept))), dtype="uint8",
+                                         dimension_names=("image", "y", "x", "class"), fill_value=0)
         label_counts = np.zeros(len(kept) + 1, dtype=np.int64)
         member_counts = np.zeros(len(kept), dtype=np.int64)
         for i in tqdm(range(n), desc="composite", unit="img", disable=not progress):
@@ -245,6 +250,8 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
                 bits = np.zeros((0, height, width), dtype=bool)
             label[i] = frame
             multihot[i] = np.moveaxis(bits, 0, -1).astype(np.uint8)
+            if kept:
+                probability[i] = np.stack([np.asarray(arrays[k][i]) for k in kept], axis=-1)
             label_counts += np.bincount(np.searchsorted([0, *values], frame.ravel()), minlength=len(kept) + 1)
             member_counts += bits.sum(axis=(1, 2))
         pixel_counts = {c: int(m) for c, m in zip(classes, member_counts)}

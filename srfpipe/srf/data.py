@@ -44,6 +44,9 @@ class PosedImages:
     # within which a pixel shows it (labels.zarr backdrop_colour, backdrop_level); None when unknown
     backdrop: tuple[list[float], float] | None = None
     labelled: np.ndarray | None = None  # (N,) bool: frames with masks (None: every frame, or no labels)
+    # (N, H, W, C) uint8 round(255 p): each class's mask probability (labels.zarr `probability`); None
+    # without labels, in labels.zarr written before the composite kept it, or when the heads train on `multihot`
+    probability: torch.Tensor | None = None
 
     @property
     def count(self) -> int:
@@ -117,7 +120,7 @@ def load_posed_images(images_path, labels_path=None) -> PosedImages:
         gt_label = np.asarray(group["ground_truth"]["labels"][...])
         # images.zarr written before the downscale stage recorded the names are all orchards
         gt_classes = [str(c) for c in attrs.get("ground_truth_classes") or ORCHARD_GT_CLASSES]
-    multihot = label = None
+    multihot = label = probability = None
     classes: list[str] = []
     semantic_bounds = None
     background_empty = False
@@ -136,6 +139,11 @@ def load_posed_images(images_path, labels_path=None) -> PosedImages:
                 f"{labels_path}: multihot {multihot.shape} does not match {n} images of {w}x{h} "
                 f"and {len(classes)} classes {classes}"
             )
+        if "probability" in lgroup:
+            probability = np.asarray(lgroup["probability"][...]).astype(np.uint8)
+            if probability.shape != multihot.shape:
+                raise ValueError(f"{labels_path}: probability {probability.shape} does not match multihot "
+                                 f"{multihot.shape}")
         require_input(labels_path, images_path, "downscale")
         if lattrs.get("bounds_world") is not None:
             # the labels stage refines the bounds (visual hull of the masks): from here on they
@@ -178,6 +186,7 @@ def load_posed_images(images_path, labels_path=None) -> PosedImages:
     return PosedImages(
         images=torch.from_numpy(images),
         multihot=None if multihot is None else torch.from_numpy(multihot),
+        probability=None if probability is None else torch.from_numpy(probability),
         label=label, gt_label=gt_label, gt_classes=gt_classes,
         poses_scene=torch.from_numpy(transform_poses(scene_from_world, poses)).float(),
         intrinsics=torch.from_numpy(intrinsics).float(),

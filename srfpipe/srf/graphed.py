@@ -78,7 +78,8 @@ class GraphedSteps:
         # the images and labels on the device: a replayed step gathers its pixels there
         self.data = replace(data, images=data.images.to(device), poses_scene=data.poses_scene.to(device),
                             intrinsics=data.intrinsics.to(device),
-                            multihot=None if data.multihot is None else data.multihot.to(device))
+                            multihot=None if data.multihot is None else data.multihot.to(device),
+                            probability=None if data.probability is None else data.probability.to(device))
         n = run.settings.rays_per_batch
         # on the CPU (tests) the same static-shape steps run eagerly: nothing is recorded
         self.cuda = device.type == "cuda"

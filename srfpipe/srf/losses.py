@@ -20,15 +20,21 @@ def photometric_loss(rgb: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 def semantic_loss(
-    logits: torch.Tensor, labels: torch.Tensor, valid: torch.Tensor | None = None
+    logits: torch.Tensor, labels: torch.Tensor, valid: torch.Tensor | None = None,
+    positive_weight: float = 1.0,
 ) -> torch.Tensor:
     """L_sem = 1/|R| sum_r sum_c BCE(sigmoid(S_hat_c(r)), y_c(r)) (Eq. 4).
 
-    logits (R, C) rendered per-class logits; labels (R, C) in {0, 1}; `valid` (R,) excludes rays
-    that carry no label information. Returns 0 (with a graph) when no ray is valid.
+    logits (R, C) rendered per-class logits; labels (R, C) in [0, 1] (the 0/1 multi-hot bits, or
+    the masks' probabilities); `valid` (R,) excludes rays that carry no label information.
+    `positive_weight` w scales each class's positive term, -w y log p - (1 - y) log(1 - p), whose
+    minimum over p is at w y / (w y + 1 - y): p >= 0.5 wherever y >= 1 / (1 + w).
+    Returns 0 (with a graph) when no ray is valid.
     """
+    weight = None if positive_weight == 1.0 else torch.full((logits.shape[-1],), float(positive_weight),
+                                                             device=logits.device)
     per_ray = F.binary_cross_entropy_with_logits(
-        logits.float(), labels.float(), reduction="none"
+        logits.float(), labels.float(), reduction="none", pos_weight=weight
     ).sum(dim=-1)
     if per_ray.numel() == 0:
         return logits.sum() * 0.0

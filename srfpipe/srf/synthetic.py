@@ -108,12 +108,19 @@ def write_scene(folder, views: int = 16, width: int = 48, height: int = 36, radi
     return images_path, labels_path
 
 
-def write_labels(path, label: np.ndarray, classes: list[str], names: list[str], inputs=()) -> Path:
-    """labels.zarr (stage composite) from a label image (N, H, W): value v is classes[v - 1], 0 none."""
+def write_labels(path, label: np.ndarray, classes: list[str], names: list[str], inputs=(),
+                 probability: np.ndarray | None = None) -> Path:
+    """labels.zarr (stage composite) from a label image (N, H, W): value v is classes[v - 1], 0 none.
+    `probability` (N, H, W, C) uint8, round(255 p): the masks' probabilities, and the multi-hot bits
+    where they reach 0.5 (the composite's default threshold); without it, no probabilities."""
     n, height, width = label.shape
     multihot = (label[..., None] == np.arange(1, len(classes) + 1)).astype(np.uint8)
+    if probability is not None:
+        multihot = (probability >= 128).astype(np.uint8)
     with create_artifact(path, "composite", inputs=list(inputs), classes=list(classes), names=names) as g:
         g.create_array("label", shape=label.shape, chunks=(1, height, width), dtype=np.uint8)[...] = label
-        g.create_array("multihot", shape=multihot.shape, chunks=(1, height, width, max(len(classes), 1)),
-                       dtype=np.uint8)[...] = multihot
+        for name, array in (("multihot", multihot), ("probability", probability)):
+            if array is not None:
+                g.create_array(name, shape=array.shape, chunks=(1, height, width, max(len(classes), 1)),
+                               dtype=np.uint8)[...] = array
     return Path(path)

@@ -22,7 +22,7 @@ import hashlib
 import json
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -240,19 +240,28 @@ def draw_within(count: int, generator, device):
 
 def pixel_batch(data, image, v, u, within=0.5):
     """Rays through the points `within` (R, 2) of pixels (image, v, u) (0.5: their centres), target rgb
-    in [0, 1] and multi-hot labels, on the data's device."""
+    in [0, 1] and the heads' targets in [0, 1] (the masks' probabilities where `data` holds them, else
+    the multi-hot bits), on the data's device."""
     import torch
 
     from srfpipe.srf.data import rays_for_pixels
 
     origins, directions = rays_for_pixels(data.poses_scene[image], data.intrinsics[image], u, v, within)
     rgb = data.images[image, v, u].float() / 255.0
-    labels = (data.multihot[image, v, u].float() if data.multihot is not None
-              else torch.zeros(image.shape[0], 0, device=data.images.device))
+    if data.probability is not None:  # train.semantic_targets probabilities
+        labels = data.probability[image, v, u].float() / 255.0
+    elif data.multihot is not None:
+        labels = data.multihot[image, v, u].float()
+    else:
+        labels = torch.zeros(image.shape[0], 0, device=data.images.device)
     return origins, directions, rgb, labels
 
 
 REAL_CAPTURE_APPEARANCE_DIM = 8
+# the BCE's positive weight with the masks' probabilities as targets: a class where a third of the
+# probability over the views says so. Masks miss thin parts (a blurred stem's 0.25, a twig one view
+# drops) more than they mark what is not there (docs/benchmarks.md#captures-the-panel)
+MASK_PROBABILITY_POSITIVE_WEIGHT = 2.0
 # Bounds the user or the capture's ground truth gave: a box filled with the scene's matter. Other
 # bounds are estimates (frusta, points, the masks' hull plus a margin): most of the box and all
 # of the contracted shell are empty there, and a field that starts as a faint fog keeps fog that
@@ -399,6 +408,8 @@ def resolve_data_defaults(settings, data):
     (`cameras.cameras_surround`), SURROUNDING_SCENE_DISTORTION; otherwise 0.
     camera_refinement: a real capture's poses were estimated (COLMAP, structure from motion) and
     are refined while training; a generated capture's are exact.
+    semantic_targets: the masks' probabilities where labels.zarr holds them, and then
+    semantic_positive_weight MASK_PROBABILITY_POSITIVE_WEIGHT (1, the paper's BCE, on 0/1 labels).
     appearance_dim: a real capture's images differ in exposure and white balance, which a
     per-image embedding absorbs (Nerfacto, NeRF-W); a generated capture (it has ground truth)
     has none, and the embedding would only add parameters.
@@ -431,6 +442,15 @@ def resolve_data_defaults(settings, data):
         changes["camera_refinement"] = data.gt_label is None
         log.info("camera_refinement %s (%s capture)", changes["camera_refinement"],
                  "generated" if data.gt_label is not None else "real")
+    if settings.semantic_targets is None:
+        changes["semantic_targets"] = "probabilities" if data.probability is not None else "labels"
+        if data.classes:
+            log.info("semantic_targets %s (%s)", changes["semantic_targets"],
+                     "the masks' probabilities" if data.probability is not None
+                     else "labels.zarr holds no probabilities: a composite of an older srfpipe")
+    if settings.semantic_positive_weight is None:
+        soft = (settings.semantic_targets or changes["semantic_targets"]) == "probabilities"
+        changes["semantic_positive_weight"] = MASK_PROBABILITY_POSITIVE_WEIGHT if soft else 1.0
     if settings.appearance_dim is None:
         changes["appearance_dim"] = 0 if data.gt_label is not None else REAL_CAPTURE_APPEARANCE_DIM
         log.info("appearance_dim %d (%s capture)", changes["appearance_dim"],
@@ -596,7 +616,9 @@ def loss_terms(s: TrainSettings, model, outputs: dict, rgb, labels, valid, gener
     from srfpipe.srf import losses
 
     terms = {"photometric": losses.photometric_loss(outputs["rgb"], rgb),
-             "semantic": s.lambda_sem * losses.semantic_loss(outputs["logits"], labels, valid)}
+             # settings not resolved against a capture (resolve_data_defaults) keep the paper's BCE
+             "semantic": s.lambda_sem * losses.semantic_loss(outputs["logits"], labels, valid,
+                                                             s.semantic_positive_weight or 1.0)}
     if s.distortion:
         terms["distortion"] = s.distortion * outputs["distortion"]
     if s.background_opacity:
@@ -641,6 +663,11 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
         log.info("no semantic classes: training geometry and colour only")
     train_views, heldout_views = split_views(data.count, holdout_every)
     settings = resolve_data_defaults(settings, data)
+    if settings.semantic_targets == "labels":
+        data = replace(data, probability=None)
+    elif data.probability is None and data.classes:
+        raise ValueError(f"{labels}: train.semantic_targets is probabilities, but this labels.zarr holds no "
+                         "'probability' array (a composite of an older srfpipe); re-run the composite stage")
     focus = object_pixels(data, train_views, settings.object_rays)
     # frames without masks (labels.zarr `labelled`) train colour and geometry, not the heads
     labelled_frames = None if data.labelled is None else torch.from_numpy(data.labelled).to(device)
