@@ -298,8 +298,8 @@ class TrainSettings(SettingsSection):
     blurred rim, is neither in nor out) or labels (the composited ..."""
     semantic_positive_weight: float | None = field(default=None, metadata={"unset": True})
     """weight of each class's positive term in the BCE (torch's pos_weight): w > 1 marks a class
-    where at least 1 / (1 + w) of the mask probability over the views that see a point says so,
-    for masks that miss thin parts more often than they mark ..."""
+    where the masks of the views that see a point give it a mean probability of at least 1 / (1 +
+    w), for masks that miss thin parts more often than they ..."""
     device: str = 'auto'
     """auto | cpu | cuda | cuda:N"""
     lr: float = 0.01

@@ -75,9 +75,9 @@ def test_a_class_whose_masks_stay_under_the_threshold_is_learnt_from_their_proba
     pose = world_from_scene_pose(data.world_from_scene, data.poses_scene[1].numpy())
     leaves = label[1] == 3
     assert leaves.sum() >= 20
-    leaf_probability = {}
+    leaf_probability, colour_and_depth = {}, {}
     for targets in (None, "labels"):  # the default, and the composited bits
-        out = tmp_path / f"{targets}.zarr"
+        out = tmp_path / f"srf-{targets}.zarr"
         # view 0 held out: every step trains on view 1's 192 pixels, as the overfitting test does
         options = tiny_options(iterations=300, rays_per_batch=192, lr_final=0.005, checkpoint_every=0,
                                **({"semantic_targets": targets} if targets else {}))
@@ -87,6 +87,15 @@ def test_a_class_whose_masks_stay_under_the_threshold_is_learnt_from_their_proba
         assert field.attrs["config"]["semantic_positive_weight"] == (1.0 if targets else 2.0)
         rendered = field.render(pose, data.intrinsics[1].numpy(), 16, 12)
         leaf_probability[targets] = float(np.median(rendered["semantic"][..., 2][leaves]))
+        colour_and_depth[targets] = (rendered["rgb"], rendered["depth"])
+    # the heads read h.detach() and composite with detached weights (Eq. 3): what they learn from
+    # cannot move the geometry or the colour
+    assert np.allclose(colour_and_depth[None][0], colour_and_depth["labels"][0], atol=1e-5)
+    assert np.allclose(colour_and_depth[None][1], colour_and_depth["labels"][1], rtol=1e-4, atol=1e-5)
+    # a labels.zarr of an older composite holds no probabilities: asking for them names the file and writes nothing
+    with pytest.raises(ValueError, match=r"labels\.zarr: train\.semantic_targets is probabilities.*re-run the composite"):
+        train(images, labels, tmp_path / "old.zarr", tiny_options(semantic_targets="probabilities"), holdout_every=2)
+    assert not (tmp_path / "old.zarr").exists()
     # the weighted BCE's optimum for y = 0.45, w = 2: 0.9 / 1.45 = 0.62; the bits' optimum: 0
     assert abs(leaf_probability[None] - 0.9 / 1.45) < 0.06 and leaf_probability["labels"] < 0.1, leaf_probability
 

@@ -258,9 +258,9 @@ def pixel_batch(data, image, v, u, within=0.5):
 
 
 REAL_CAPTURE_APPEARANCE_DIM = 8
-# the BCE's positive weight with the masks' probabilities as targets: a class where a third of the
-# probability over the views says so. Masks miss thin parts (a blurred stem's 0.25, a twig one view
-# drops) more than they mark what is not there (docs/benchmarks.md#captures-the-panel)
+# the BCE's positive weight with the masks' probabilities as targets: a point takes a class where the
+# views that see it give it a mean probability of 1 / (1 + w) = 1/3 or more. Masks miss thin parts (a
+# blurred stem's 0.25, a twig one view drops) more than they mark what is not there (docs/benchmarks.md)
 MASK_PROBABILITY_POSITIVE_WEIGHT = 2.0
 # Bounds the user or the capture's ground truth gave: a box filled with the scene's matter. Other
 # bounds are estimates (frusta, points, the masks' hull plus a margin): most of the box and all
