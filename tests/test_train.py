@@ -71,7 +71,8 @@ def test_a_class_whose_masks_stay_under_the_threshold_is_learnt_from_their_proba
     probability = np.where(truth, np.array([255, 255, 115], np.uint8), 0).astype(np.uint8)  # leaf 0.45
     soft = write_labels(tmp_path / "soft.zarr", label, CLASSES, ["frame_00000", "frame_00001"], inputs=[images],
                         probability=probability)
-    data = load_posed_images(images, soft)
+    data = load_posed_images(images, soft, probability=True)
+    assert data.probability.shape == (2, 12, 16, 3) and load_posed_images(images, soft).probability is None
     pose = world_from_scene_pose(data.world_from_scene, data.poses_scene[1].numpy())
     leaves = label[1] == 3
     assert leaves.sum() >= 20

@@ -87,9 +87,13 @@ def _check_matrix(value, name: str, path: Path) -> np.ndarray:
     return matrix
 
 
-def load_posed_images(images_path, labels_path=None) -> PosedImages:
+def load_posed_images(images_path, labels_path=None, probability: bool = False) -> PosedImages:
     """Read images.zarr (+ labels.zarr) into memory, checking shapes against each other and that
-    labels.zarr was composited from this images.zarr (the fingerprint it records; `require_input`)."""
+    labels.zarr was composited from this images.zarr (the fingerprint it records; `require_input`).
+
+    `probability`: also read labels.zarr's per-class mask probabilities (N, H, W, C), which only
+    training against them needs; `PosedImages.probability` stays None without it, or when the
+    labels.zarr (an older composite) holds none."""
     images_path = Path(images_path)
     group = open_artifact(images_path, stage="downscale")
     attrs = meta(group)
@@ -120,7 +124,7 @@ def load_posed_images(images_path, labels_path=None) -> PosedImages:
         gt_label = np.asarray(group["ground_truth"]["labels"][...])
         # images.zarr written before the downscale stage recorded the names are all orchards
         gt_classes = [str(c) for c in attrs.get("ground_truth_classes") or ORCHARD_GT_CLASSES]
-    multihot = label = probability = None
+    multihot = label = mask_probability = None
     classes: list[str] = []
     semantic_bounds = None
     background_empty = False
@@ -139,10 +143,10 @@ def load_posed_images(images_path, labels_path=None) -> PosedImages:
                 f"{labels_path}: multihot {multihot.shape} does not match {n} images of {w}x{h} "
                 f"and {len(classes)} classes {classes}"
             )
-        if "probability" in lgroup:
-            probability = np.asarray(lgroup["probability"][...]).astype(np.uint8)
-            if probability.shape != multihot.shape:
-                raise ValueError(f"{labels_path}: probability {probability.shape} does not match multihot "
+        if probability and "probability" in lgroup:
+            mask_probability = np.asarray(lgroup["probability"][...]).astype(np.uint8)
+            if mask_probability.shape != multihot.shape:
+                raise ValueError(f"{labels_path}: probability {mask_probability.shape} does not match multihot "
                                  f"{multihot.shape}")
         require_input(labels_path, images_path, "downscale")
         if lattrs.get("bounds_world") is not None:
@@ -186,7 +190,7 @@ def load_posed_images(images_path, labels_path=None) -> PosedImages:
     return PosedImages(
         images=torch.from_numpy(images),
         multihot=None if multihot is None else torch.from_numpy(multihot),
-        probability=None if probability is None else torch.from_numpy(probability),
+        probability=None if mask_probability is None else torch.from_numpy(mask_probability),
         label=label, gt_label=gt_label, gt_classes=gt_classes,
         poses_scene=torch.from_numpy(transform_poses(scene_from_world, poses)).float(),
         intrinsics=torch.from_numpy(intrinsics).float(),

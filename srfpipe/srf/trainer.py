@@ -22,7 +22,7 @@ import hashlib
 import json
 import logging
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -658,14 +658,13 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
     from srfpipe.srf.model import SRFModel, build_model_config
 
     device = choose_device(settings.device)
-    data = load_posed_images(images, labels)
+    # the masks' probabilities are read unless the heads are asked to train on the 0/1 labels
+    data = load_posed_images(images, labels, probability=settings.semantic_targets != "labels")
     if not data.classes:
         log.info("no semantic classes: training geometry and colour only")
     train_views, heldout_views = split_views(data.count, holdout_every)
     settings = resolve_data_defaults(settings, data)
-    if settings.semantic_targets == "labels":
-        data = replace(data, probability=None)
-    elif data.probability is None and data.classes:
+    if settings.semantic_targets == "probabilities" and data.probability is None and data.classes:
         raise ValueError(f"{labels}: train.semantic_targets is probabilities, but this labels.zarr holds no "
                          "'probability' array (a composite of an older srfpipe); re-run the composite stage")
     focus = object_pixels(data, train_views, settings.object_rays)
