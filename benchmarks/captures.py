@@ -46,8 +46,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from common import (REPO, earlier_measurements, holdout_every, machine_info, measured_steps, merge, renamed_paths,
-                    result_path, rule_seconds, run_workflow, write_result, write_workdir)
+from common import (REPO, earlier_measurements, holdout_every, host_speed_notes, machine_info, measured_steps, merge,
+                    renamed_paths, result_path, rule_seconds, run_workflow, write_result, write_workdir)
 
 SHARED = (REPO / ".." / "shared" / "data").resolve()
 FOX = SHARED / "fox"
@@ -549,8 +549,13 @@ def main() -> int:
         print(f"nothing measured: {previous_file} is left as it was")
         return 1
     measured_now = sorted(per_scene)
+    machine = machine_info(quick=args.quick)
+    for entry in per_scene.values():  # each row names its host: a run of some captures keeps the others' rows
+        entry["machine"] = machine
     previous_configs = {}
     previous_report = json.loads(previous_file.read_text()) if previous_file.exists() else {}
+    for note in host_speed_notes(previous_report, per_scene, machine):
+        print(f"warning: {note}")
     if previous_report and previous_report.get("overrides", {}) == overrides:
         # a run of some scenes keeps the others' last measurement (of the same candidate)
         previous_configs = previous_report.get("scene_configs", {})
@@ -559,7 +564,7 @@ def main() -> int:
     panel = {name: panel_entry(per_scene[name], peers.get(name, {})) for name in PANEL if name in per_scene}
     report: dict = {"overrides": overrides, "scenes": per_scene, "panel": panel, "measured_now": measured_now,
                     "workflow_seconds": seconds,
-                    "machine": machine_info(quick=args.quick),
+                    "machine": machine,
                     "scene_configs": {**{k: v for k, v in previous_configs.items() if k in per_scene},
                                       **{k: v for k, v in scenes.items() if k in measured_now}}}
     fox, plant, orchard = (per_scene.get(n, {}) for n in ("fox", "plant", "orchard"))

@@ -160,6 +160,33 @@ def earlier_measurements(previous: dict[str, dict], measured_now) -> dict[str, d
             for name, entry in previous.items() if name not in measured_now}
 
 
+# Hosts whose CPU probes differ by more than this factor train visibly different step counts in one
+# time budget (2026-12-01: a probe of 0.40 s against the panel's 0.17-0.26 s trained 25-30 % of the
+# rows' steps in 10 minutes, the code's own speed unchanged)
+HOST_SPEED_FACTOR = 1.5
+
+
+def host_speed_notes(previous: dict, measured: dict[str, dict], machine: dict) -> list[str]:
+    """One line per re-measured scene whose earlier entry in the `previous` report was measured on a
+    host whose `cpu_probe_seconds` differs from `machine`'s by more than HOST_SPEED_FACTOR: its new
+    time-budgeted row compares the hosts as much as the code. An entry's host is its own `machine`,
+    else the report's when that report measured it; otherwise it is not known and nothing is said."""
+    notes = []
+    now = machine.get("cpu_probe_seconds")
+    for name, entry in measured.items():
+        before = previous.get("scenes", {}).get(name)
+        if not before or not now:
+            continue
+        host = before.get("machine") or (previous.get("machine") if name in previous.get("measured_now", []) else None)
+        then = (host or {}).get("cpu_probe_seconds")
+        if not then or max(now / then, then / now) <= HOST_SPEED_FACTOR:
+            continue
+        notes.append(f"{name}: this host's CPU probe reads {now:.2f} s against {then:.2f} s where its previous entry "
+                     f"was measured ({entry.get('steps')} steps now, {before.get('steps')} then): a time-budgeted row "
+                     "compares the hosts as much as the code (--equal-steps compares step for step)")
+    return notes
+
+
 def write_result(path: Path, report: dict) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(report, indent=1) + "\n")
