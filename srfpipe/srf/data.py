@@ -45,7 +45,7 @@ class PosedImages:
     backdrop: tuple[list[float], float] | None = None
     labelled: np.ndarray | None = None  # (N,) bool: frames with masks (None: every frame, or no labels)
     # (N, H, W, C) uint8 round(255 p): each class's mask probability (labels.zarr `probability`); None
-    # without labels, in labels.zarr written before the composite kept it, or when the heads train on `multihot`
+    # without labels, in labels.zarr written before the composite kept it, or unless the loader was asked for it
     probability: torch.Tensor | None = None
 
     @property
