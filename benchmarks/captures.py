@@ -174,7 +174,8 @@ def scene_report(results: Path, workdir: Path, name: str) -> dict:
         for key in ("psnr", "psnr_object", "ssim", "miou", "miou_gt", "miou_gt_classes", "iou_gt",
                     "floater_fraction", "significant_samples_per_ray", "views", "miou_classes",
                     "train_view_psnr", "generalization_gap_db", "overfit", "miou_masks_gt", "miou_masks_gt_classes",
-                    "iou_masks_gt", "train_view_psnr_borrowed_appearance", "appearance_gap_db"):
+                    "iou_masks_gt", "train_view_psnr_borrowed_appearance", "appearance_gap_db", "object_iou_gt",
+                    "miou_gt_classes_on_object", "object_iou_masks_gt"):
             if key in metrics:
                 report[key] = metrics[key]
     labels = results / name / "labels.zarr"

@@ -282,6 +282,8 @@ class HeldoutScores:
         self.candidates, self.kept = 0.0, 0.0  # intervals placed along the rays, and those not skipped as empty
         self.confusion = np.zeros((self.labels, self.labels), np.int64)
         self.confusion_gt = np.zeros_like(self.confusion) if data.gt_label is not None else None
+        # the true object's pixels each labelled with its most likely class, against the truth
+        self.confusion_gt_on_object = np.zeros_like(self.confusion) if data.gt_label is not None else None
 
     def add(self, index: int, rendered: dict, target: np.ndarray):
         """Score view `index`'s render against its image; the predicted and reference label images
@@ -311,6 +313,8 @@ class HeldoutScores:
         if self.confusion_gt is not None:
             reference = remap_ground_truth(data.gt_label[index], data.gt_classes, data.classes)
             self.confusion_gt += metrics.confusion(pred_label, reference, self.labels)
+            on_object = np.where(reference > 0, rendered["semantic"].argmax(axis=-1) + 1, 0)
+            self.confusion_gt_on_object += metrics.confusion(on_object, reference, self.labels)
         objects = reference > 0
         self.sq_err_object += float(err[objects].sum())
         self.object_pixels += int(objects.sum())
@@ -349,7 +353,28 @@ class HeldoutScores:
         result.update(_iou_metrics(self.confusion, names, ""))
         if self.confusion_gt is not None:
             result.update(_iou_metrics(self.confusion_gt, names, "_gt"))
+            result.update(where_and_which(self.confusion_gt, self.confusion_gt_on_object))
         return result
+
+
+def where_and_which(confusion_gt: np.ndarray, confusion_on_object: np.ndarray) -> dict:
+    """The class mIoU against the truth split in two: `object_iou_gt`, the IoU of the pixels the
+    field gives any class with the truth's object pixels (where the object is), and
+    `miou_gt_classes_on_object`, the class mIoU over the truth's object pixels alone, each taking
+    the field's most likely class (which class it is). A capture whose thin parts span a pixel or
+    less loses its mIoU to the first; labels that bleed between classes, to the second."""
+    from srfpipe.srf import metrics
+
+    return {"object_iou_gt": object_iou(confusion_gt),
+            "miou_gt_classes_on_object": _finite(np.nanmean(metrics.iou_from_confusion(confusion_on_object)[1:]))}
+
+
+def object_iou(confusion: np.ndarray) -> float | None:
+    """IoU of the pixels labelled with any class against the reference's object pixels, from a
+    [reference, predicted] confusion whose label 0 is the background."""
+    hit = float(confusion[1:, 1:].sum())
+    union = hit + float(confusion[0, 1:].sum()) + float(confusion[1:, 0].sum())
+    return hit / union if union else None
 
 
 def generalization_check(field, data, render_view, views, heldout_psnr: float) -> dict:
@@ -406,6 +431,10 @@ def unlabelled_view_scores(data, render_view, train, count: int) -> dict:
 def _log_result(result: dict, srf, semantic: bool) -> None:
     log.info("psnr %.2f ssim %.3f%s", result["psnr"], result["ssim"],
              f" miou {result['miou']:.3f}" if semantic else " (no classes: no IoU)")
+    if result.get("object_iou_gt") is not None and result.get("miou_gt_classes_on_object") is not None:
+        log.info("class mIoU against the truth %.3f: where the object is (its IoU) %.3f, which class it is "
+                 "(on the true object's pixels) %.3f", result["miou_gt_classes"], result["object_iou_gt"],
+                 result["miou_gt_classes_on_object"])
     if result["overfit"]:
         notes = [f"{result['appearance_gap_db']:.1f} dB of it is the training images' own appearance embeddings"
                  ] if "appearance_gap_db" in result else []
@@ -418,7 +447,7 @@ def _log_result(result: dict, srf, semantic: bool) -> None:
 def mask_agreement(data, train) -> dict:
     """The composited labels of the training views `train` that had masks against the capture's
     ground truth (`PosedImages` with gt_label): iou_masks_gt, miou_masks_gt and
-    miou_masks_gt_classes, the ceiling the masks set."""
+    miou_masks_gt_classes, the ceiling the masks set, and object_iou_masks_gt (where they put the object)."""
     from srfpipe.srf import metrics
     from srfpipe.srf.data import remap_ground_truth
 
@@ -428,7 +457,8 @@ def mask_agreement(data, train) -> dict:
     for index in views:
         truth = remap_ground_truth(data.gt_label[index], data.gt_classes, data.classes)
         conf += metrics.confusion(data.label[index], truth, labels)
-    return _iou_metrics(conf, ["background"] + list(data.classes), "_masks_gt")
+    return {**_iou_metrics(conf, ["background"] + list(data.classes), "_masks_gt"),
+            "object_iou_masks_gt": object_iou(conf)}
 
 
 def _iou_metrics(confusion: np.ndarray, names: list[str], suffix: str) -> dict:

@@ -85,6 +85,39 @@ def test_classes_give_iou_and_three_panel_renders(scene):
     assert figure.shape == (2 * HEIGHT, 3 * WIDTH, 3)
 
 
+class FatField(ExactField):
+    """The exact field with every class grown by a pixel into the background (thin parts rendered fat)."""
+
+    def render(self, *args, **kwargs) -> dict:
+        out = super().render(*args, **kwargs)
+        grown = np.stack([cv2.dilate(channel, np.ones((3, 3), np.uint8)) for channel in np.moveaxis(out["semantic"], -1, 0)], -1)
+        return {**out, "semantic": np.where(out["semantic"].max(-1, keepdims=True) > 0, out["semantic"], grown)}
+
+
+class SwappedField(ExactField):
+    """The exact field with its first and last class exchanged (the object in place, its labels wrong)."""
+
+    def render(self, *args, **kwargs) -> dict:
+        out = super().render(*args, **kwargs)
+        return {**out, "semantic": out["semantic"][..., ::-1].copy()}
+
+
+def test_the_class_miou_splits_into_where_the_object_is_and_which_class_it_is(scene):
+    folder, images, labels = scene
+    data = load_posed_images(images, labels)
+    scores = {name: evaluate_field(field(images, data.classes), data, folder / f"eval_{name}", CENTRES, labels, name)
+              for name, field in (("exact", ExactField), ("fat", FatField), ("swapped", SwappedField))}
+    exact, fat, swapped = scores["exact"], scores["fat"], scores["swapped"]
+    assert exact["object_iou_gt"] > 0.95 and exact["miou_gt_classes_on_object"] > 0.9
+    assert exact["object_iou_masks_gt"] > 0.9  # the synthetic scene's masks are its labels
+    # a silhouette a pixel too wide costs the object's IoU, not its classes
+    assert fat["object_iou_gt"] < exact["object_iou_gt"] - 0.1 and fat["miou_gt_classes"] < exact["miou_gt_classes"] - 0.05
+    assert fat["miou_gt_classes_on_object"] == pytest.approx(exact["miou_gt_classes_on_object"], abs=0.02)
+    # wrong classes in the right place: the other way round
+    assert swapped["object_iou_gt"] == pytest.approx(exact["object_iou_gt"])
+    assert swapped["miou_gt_classes_on_object"] < 0.5
+
+
 @pytest.mark.bad_input
 def test_classes_that_differ_from_the_fields_name_both(scene):
     folder, images, labels = scene
