@@ -11,11 +11,20 @@ built three ways, every other setting the orchard-lens's:
 
 * `as given`: the claimed lens undistorts the images (pixels up to 25 px off at the frame's corners);
 * `poses refined`: COLMAP triangulates from the given poses and bundle-adjusts them, the claimed
-  lens held fixed (a turn of a camera can absorb part of a tangential error);
-* `distortion refined`: the same with the lens's distortion freed (`poses.refine_distortion`);
-  downscaling undistorts with what it measured.
+  lens held fixed (`poses.refine_distortion: false`; a turn of a camera can absorb part of a
+  tangential error);
+* `distortion refined`: the same with the lens's distortion freed (`poses.refine_distortion: true`,
+  which for a stated lens is what `refine: colmap` does by default, `stated`); downscaling
+  undistorts with what it measured.
 
-    python benchmarks/lens.py [--quick] [--workdir DIR] [--train-seconds S] [--snakemake-args ...]
+`--lens right` builds the same three ways with the lens stated right (transforms.json as generated,
+all four coefficients): does COLMAP's refinement keep a strong tangential lens that is right, and what
+does freeing the distortion cost when nothing was wrong? It writes lens_stated_right.json.
+`--iterations N` trains every build for N steps (time budget off), so that the builds compare at
+equal steps on any host.
+
+    python benchmarks/lens.py [--quick] [--lens misstated|right] [--iterations N] [--workdir DIR]
+                              [--train-seconds S] [--snakemake-args ...]
 
 Writes benchmarks/results/lens.json: per build `psnr`, `psnr_object`, `miou_gt_classes`, `ssim`,
 `train_view_psnr`, `steps`, the distortion the images were undistorted with and how far it misplaces
@@ -39,7 +48,7 @@ from common import REPO, machine_info, merge, result_path, run_workflow, write_r
 CLAIMED_LENS = [PHONE_LENS[0], PHONE_LENS[1], 0.0, 0.0]  # the tangential terms left out
 BUILDS = {
     "as-given": {},
-    "poses-refined": {"poses": {"refine": "colmap"}},
+    "poses-refined": {"poses": {"refine": "colmap", "refine_distortion": False}},
     "distortion-refined": {"poses": {"refine": "colmap", "refine_distortion": True}},
 }
 
@@ -72,6 +81,11 @@ def pixel_shift_px(intrinsics, size, true_lens, lens) -> tuple[float, float]:
     return float(shift.mean()), float(shift.max())
 
 
+def lens_builds(lens: str) -> tuple[list[float], str]:
+    """The distortion the capture claims, and the result's name, for `--lens`."""
+    return (CLAIMED_LENS, "lens") if lens == "misstated" else (list(PHONE_LENS), "lens_stated_right")
+
+
 def build_report(workdir: Path, name: str) -> dict:
     from srfpipe.artifacts import open_artifact, read_provenance
 
@@ -97,33 +111,43 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="60 s of training per build")
     parser.add_argument("--workdir", type=Path, default=REPO / "benchmarks" / "work" / "lens")
     parser.add_argument("--train-seconds", type=float, default=300.0)
+    parser.add_argument("--lens", choices=("misstated", "right"), default="misstated",
+                        help="the calibration the capture claims: without its tangential terms (lens.json), or "
+                             "the lens as it is (lens_stated_right.json)")
+    parser.add_argument("--iterations", type=int, default=None,
+                        help="train every build for this many steps, time budget off (equal steps on any host)")
     parser.add_argument("--snakemake-args", nargs=argparse.REMAINDER, default=[],
                         help="more Snakemake arguments (last), e.g. --rerun-triggers mtime")
     args = parser.parse_args()
     extra = tuple(args.snakemake_args)
     seconds = 60.0 if args.quick else args.train_seconds
 
+    claimed, result_name = lens_builds(args.lens)
+    prefix = "lens-" if args.lens == "misstated" else "lens-right-"
+    budget = {"time_budget": seconds} if args.iterations is None else {"time_budget": 0, "iterations": args.iterations}
     base = scene_configs(["orchard-lens"], quick=False)["orchard-lens"]
     scenes = {}
     for build, overrides in BUILDS.items():
         scene = merge(base, overrides)
-        scene.setdefault("train", {}).update(time_budget=seconds)
+        scene.setdefault("train", {}).update(budget)
         scene["train"].pop("snapshot_seconds", None)
-        scenes[f"lens-{build}"] = scene
+        scenes[f"{prefix}{build}"] = scene
     write_workdir(args.workdir, scenes, "eval")
     log = args.workdir / "snakemake.log"
     for name in scenes:
         run_workflow(args.workdir, [f"results/{name}/capture"], log=log, extra=extra)
-        misstate_lens(args.workdir / "results" / name / "capture", CLAIMED_LENS)
+        misstate_lens(args.workdir / "results" / name / "capture", claimed)
     for name in scenes:
         run_workflow(args.workdir, [f"results/{name}/eval"], log=log, extra=extra)
 
-    builds = {name.removeprefix("lens-"): build_report(args.workdir, name) for name in scenes}
+    builds = {name.removeprefix(prefix): build_report(args.workdir, name) for name in scenes}
     captures = json.loads((REPO / "benchmarks" / "results" / "captures.json").read_text())
     panel = captures.get("panel", {}).get("orchard-lens", {})
     report = {
         "machine": machine_info(),
-        "true_lens": PHONE_LENS, "claimed_lens": CLAIMED_LENS, "train_seconds": seconds,
+        "true_lens": PHONE_LENS, "claimed_lens": claimed,
+        "train": budget,
+        "train_seconds": seconds if args.iterations is None else None,
         "builds": builds,
         "reference": {"orchard_lens_psnr_5min": panel.get("srfpipe_psnr_5min"),
                       "orchard_lens_psnr_10min": panel.get("psnr"),
@@ -131,7 +155,7 @@ def main() -> None:
         "psnr_gain_db": builds["distortion-refined"]["psnr"] - builds["as-given"]["psnr"],
         "psnr_gain_poses_only_db": builds["poses-refined"]["psnr"] - builds["as-given"]["psnr"],
     }
-    path = write_result(result_path("lens", args.quick), report)
+    path = write_result(result_path(result_name, args.quick), report)
     print(f"{'build':<20} {'psnr':>7} {'object':>7} {'mIoU':>6} {'train':>7} {'steps':>6} {'pixel shift mean/max':>20}")
     for name, row in builds.items():
         print(f"{name:<20} {row['psnr']:7.2f} {row['psnr_object'] or float('nan'):7.2f} "

@@ -75,12 +75,23 @@ def validate_scene(scene: dict, source: str = "<scene>", whole: bool = False) ->
             key = ".".join(str(p) for p in error.path) or "(top level)"
             lines.append(f"{source}: {key}: {error.message}{_suggestion(error)}")
         raise ConfigError("\n".join(lines))
+    resolve_conditional_defaults(scene)
     problems = contradictions(scene)
     if knows_prompts:
         problems += unknown_role_classes(named_roles, scene["segmentation"]["prompts"])
     if problems:
         raise ConfigError("\n".join(f"{source}: {problem}" for problem in problems))
     return scene
+
+
+def resolve_conditional_defaults(scene: dict) -> None:
+    """Defaults that depend on another key, which a schema's `default` cannot say. Filled into the
+    scene, so that they are part of a rule's params: a scene they change is rebuilt, others are not.
+
+    poses.refine_distortion: `stated` under poses.refine: colmap (a stated lens is refitted)."""
+    poses = scene.get("poses")
+    if isinstance(poses, dict) and poses.get("refine") == "colmap":
+        poses.setdefault("refine_distortion", "stated")
 
 
 def apply_preset(scene: dict) -> None:
@@ -114,7 +125,8 @@ def contradictions(scene: dict) -> list[str]:
     problems = []
     poses = scene.get("poses", {})
     if poses.get("refine_distortion") and poses.get("refine") != "colmap":
-        problems.append(f"poses.refine_distortion is true but poses.refine is {poses.get('refine')!r}: the distortion "
+        value = poses["refine_distortion"]
+        problems.append(f"poses.refine_distortion is {str(value).lower()} but poses.refine is {poses.get('refine')!r}: the distortion "
                         "is fitted in COLMAP's refinement of the given poses (poses.refine: colmap)")
     bounds = poses.get("bounds")
     if bounds is not None and not all(lo < hi for lo, hi in zip(bounds[0], bounds[1])):

@@ -127,9 +127,9 @@ class PosesSettings(SettingsSection):
 
     refine: str = 'none'
     """refine imported poses with COLMAP (pycolmap) triangulation + bundle adjustment"""
-    refine_distortion: bool | None = field(default=None, metadata={"unset": True})
-    """with refine: colmap, fit each calibration's distortion too (OpenCV k1, k2, p1, p2; a pinhole
-    gains them) in every bundle adjustment, shared by the images that share the calibration"""
+    refine_distortion: str | bool | None = field(default=None, metadata={"unset": True})
+    """with refine: colmap, fit the calibrations' distortion (OpenCV k1, k2, p1, p2) in every bundle
+    adjustment too, shared by the images that share a calibration"""
     matcher: str = 'auto'
     """COLMAP pair selection. auto = exhaustive up to 20 images, poses otherwise"""
     min_images: int = 2

@@ -57,6 +57,16 @@ def test_section_defaults():
     assert section_defaults("poses")["refine"] == "none"
 
 
+def test_a_colmap_refinement_refits_a_stated_lens_unless_the_scene_says_otherwise():
+    # filled into the scene, so that the poses rule's params change only for the scenes it changes
+    assert validate_scene({"poses": {"refine": "colmap"}})["poses"]["refine_distortion"] == "stated"
+    assert "refine_distortion" not in validate_scene({"poses": {}})["poses"]
+    for given in (False, True):
+        assert validate_scene({"poses": {"refine": "colmap", "refine_distortion": given}})["poses"]["refine_distortion"] is given
+    with pytest.raises(ConfigError, match="poses.refine_distortion"):
+        validate_scene({"poses": {"refine": "colmap", "refine_distortion": "always"}}, "s.yaml")
+
+
 SCHEMA_KEYWORDS = {
     "$schema", "description", "type", "properties", "additionalProperties", "default", "enum", "const",
     "items", "minItems", "maxItems", "minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum",

@@ -622,25 +622,28 @@ def test_colmap_refinement_repairs_perturbed_poses(tmp_path, matcher):
     points = cameras.transform_points(align_poses(group["camera_to_world"][:], truth), group["points_world"][:])
     assert np.median(np.abs(points).min(axis=1)) < 0.005
     assert not list(tmp_path.glob(".colmap-refine-*"))  # the scratch database is gone
+    # refine_distortion's default (stated) frees only a stated lens: this pinhole stays a pinhole
+    assert info["config"]["poses"]["refine_distortion"] == "stated" and "distortion" not in stats
+    assert not group["distortion"][:].any()
 
 
 def test_colmap_refinement_measures_a_lens_the_capture_misstates(tmp_path):
     """A phone-like lens with strong tangential terms that the capture's calibration leaves out
-    (as a poor COLMAP model would): with poses.refine_distortion the matches measure the lens, and
-    poses.zarr's calibration gives the frame's pixels about the rays the lens really gives them;
-    without it the capture's calibration is kept as given."""
+    (as a poor COLMAP model would): by default (poses.refine_distortion: stated, the capture states
+    a lens) the matches measure the lens, and poses.zarr's calibration gives the frame's pixels
+    about the rays the lens really gives them; with refine_distortion false the capture's
+    calibration is kept as given."""
     k, lens, claimed = (220.0, 220.0, 160.0, 120.0), (-0.05, 0.02, 0.011, 0.0096), (-0.05, 0.02, 0.0, 0.0)
     write_box_corner_capture(tmp_path / "cap", lens=lens, claimed_lens=claimed)
     options = {"refine": "colmap", "bounds": [[0, 0, 0], [2, 2, 2]]}
-    kept = open_artifact(import_poses({"format": "nerfstudio"}, tmp_path / "cap", options, tmp_path / "kept.zarr",
-                                      threads=2), stage="poses")
+    kept = open_artifact(import_poses({"format": "nerfstudio"}, tmp_path / "cap", {**options, "refine_distortion": False},
+                                      tmp_path / "kept.zarr", threads=2), stage="poses")
     assert "distortion" not in meta(kept)["refinement"]
     np.testing.assert_allclose(kept["distortion"][:], np.tile(claimed, (12, 1)))
-    out = import_poses({"format": "nerfstudio"}, tmp_path / "cap", {**options, "refine_distortion": True},
-                       tmp_path / "poses.zarr", threads=2)
+    out = import_poses({"format": "nerfstudio"}, tmp_path / "cap", options, tmp_path / "poses.zarr", threads=2)
     group = open_artifact(out, stage="poses")
     stats = meta(group)["refinement"]
-    assert meta(group)["config"]["poses"]["refine_distortion"] is True
+    assert meta(group)["config"]["poses"]["refine_distortion"] == "stated"
     assert len(stats["distortion"]) == 1 and stats["distortion"][0]["given"] == list(claimed)
     distortion = group["distortion"][:]
     assert (distortion == distortion[0]).all()  # one lens, shared by the images taken with it

@@ -13,8 +13,9 @@ intrinsics held fixed), so this is "point triangulator + bundle adjuster", not S
    the first pass, because the given poses may be off by a degree or more.
 4. Bundle adjustment of poses and points (robust Cauchy loss, intrinsics fixed), outlier
    filtering, a second triangulation with COLMAP's default thresholds from the refined poses, and
-   a final bundle adjustment. With `refine_distortion` every adjustment also fits each calibration's
-   OpenCV distortion (shared by the images taken with it; focal lengths and principal point stay):
+   a final bundle adjustment. With `refine_distortion` (`stated`, the stage's default: the
+   calibrations that state a distortion; `true`: every one) every adjustment also fits the
+   calibration's OpenCV distortion (shared by the images taken with it; focal lengths and principal point stay):
    a phone's COLMAP model can carry tangential terms that undistortion would turn into pixels
    several px off at the frame's corners, and the images' own matches measure the lens.
 5. Bundle adjustment leaves the gauge (scale, rotation, position of the world) free, so the result
@@ -265,13 +266,15 @@ def _summary(reconstruction) -> dict:
 
 
 def _refined_distortion(reconstruction, capture: Capture) -> tuple[np.ndarray, list[dict]]:
-    """(N, 4) OpenCV k1, k2, p1, p2 of each image's camera, and per camera its first image with the
-    given and the refined coefficients (for poses.zarr's stats)."""
+    """(N, 4) OpenCV k1, k2, p1, p2 of each image's camera (zeros for a pinhole), and per camera
+    that has a distortion its first image with the given and the refined coefficients (for
+    poses.zarr's stats)."""
     distortion, records, seen = [], [], set()
     for index, name in enumerate(capture.image_paths):
         camera_id = reconstruction.images[index + 1].camera_id
-        distortion.append(np.asarray(reconstruction.cameras[camera_id].params[4:8], dtype=np.float64))
-        if camera_id not in seen:
+        params = np.asarray(reconstruction.cameras[camera_id].params, dtype=np.float64)
+        distortion.append(params[4:8] if params.size >= 8 else np.zeros(4))
+        if camera_id not in seen and params.size >= 8:
             seen.add(camera_id)
             records.append({"first_image": name, "given": capture.distortion[index].tolist(),
                             "refined": distortion[-1].tolist()})
@@ -280,9 +283,10 @@ def _refined_distortion(reconstruction, capture: Capture) -> tuple[np.ndarray, l
 
 def refine_poses(capture: Capture, camera_to_world: np.ndarray, matcher: str = "auto",
                  workdir_parent: str | Path | None = None, threads: int = -1,
-                 max_features: int = 8192, refine_distortion: bool = False) -> RefinementResult:
+                 max_features: int = 8192, refine_distortion: bool | str = False) -> RefinementResult:
     """Refine `camera_to_world` (N, 4, 4) for the images of `capture`; with `refine_distortion`, also
-    each calibration's distortion (the result's `distortion`).
+    the calibrations' distortion (the result's `distortion`): True every calibration's (a pinhole
+    gains the OpenCV terms), "stated" those that state one (a pinhole stays one), False none.
 
     Intermediate files (database, models) go to a temporary folder under `workdir_parent`.
     """
@@ -297,7 +301,9 @@ def refine_poses(capture: Capture, camera_to_world: np.ndarray, matcher: str = "
         log.warning("COLMAP: image names with spaces cannot go into a pair list; spatial matching instead")
         matcher = "spatial"
     reconstruction = build_reconstruction(capture.image_paths, camera_to_world, capture.intrinsics,
-                                          capture.image_size, capture.distortion, opencv=refine_distortion)
+                                          capture.image_size, capture.distortion, opencv=refine_distortion is True)
+    # a pinhole camera has no extra parameters: under "stated" only the stated lenses are freed
+    refine_distortion = bool(refine_distortion) and (refine_distortion is True or bool(np.any(np.asarray(capture.distortion) != 0)))
     if workdir_parent is not None:
         Path(workdir_parent).mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=".colmap-refine-", dir=workdir_parent) as tmp:

@@ -139,7 +139,7 @@ def import_poses(source: dict, capture_dir: str | Path | None, options: dict, ou
     refinement = None
     if options["refine"] == "colmap":
         result = refine_poses(capture, poses, matcher=options["matcher"], workdir_parent=Path(out).parent,
-                              threads=threads, refine_distortion=bool(options.get("refine_distortion")))
+                              threads=threads, refine_distortion=options.get("refine_distortion") or False)
         poses, points, refinement = result.camera_to_world, result.points_world, result.stats
         if result.distortion is not None:  # the lens the images' own matches measured, which downscaling undoes
             capture = replace(capture, distortion=result.distortion)
