@@ -81,9 +81,11 @@ def pixel_shift_px(intrinsics, size, true_lens, lens) -> tuple[float, float]:
     return float(shift.mean()), float(shift.max())
 
 
-def lens_builds(lens: str) -> tuple[list[float], str]:
-    """The distortion the capture claims, and the result's name, for `--lens`."""
-    return (CLAIMED_LENS, "lens") if lens == "misstated" else (list(PHONE_LENS), "lens_stated_right")
+def lens_builds(lens: str) -> tuple[list[float], str, str]:
+    """The distortion the capture claims, the result's name and the builds' scene prefix, for `--lens`."""
+    if lens == "misstated":
+        return CLAIMED_LENS, "lens", "lens-"
+    return list(PHONE_LENS), "lens_stated_right", "lens-right-"
 
 
 def build_report(workdir: Path, name: str) -> dict:
@@ -122,8 +124,7 @@ def main() -> None:
     extra = tuple(args.snakemake_args)
     seconds = 60.0 if args.quick else args.train_seconds
 
-    claimed, result_name = lens_builds(args.lens)
-    prefix = "lens-" if args.lens == "misstated" else "lens-right-"
+    claimed, result_name, prefix = lens_builds(args.lens)
     budget = {"time_budget": seconds} if args.iterations is None else {"time_budget": 0, "iterations": args.iterations}
     base = scene_configs(["orchard-lens"], quick=False)["orchard-lens"]
     scenes = {}

@@ -303,7 +303,8 @@ def refine_poses(capture: Capture, camera_to_world: np.ndarray, matcher: str = "
     reconstruction = build_reconstruction(capture.image_paths, camera_to_world, capture.intrinsics,
                                           capture.image_size, capture.distortion, opencv=refine_distortion is True)
     # a pinhole camera has no extra parameters: under "stated" only the stated lenses are freed
-    refine_distortion = bool(refine_distortion) and (refine_distortion is True or bool(np.any(np.asarray(capture.distortion) != 0)))
+    stated = bool(np.any(np.asarray(capture.distortion) != 0))
+    free_distortion = refine_distortion is True or (refine_distortion == "stated" and stated)
     if workdir_parent is not None:
         Path(workdir_parent).mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=".colmap-refine-", dir=workdir_parent) as tmp:
@@ -344,18 +345,18 @@ def refine_poses(capture: Capture, camera_to_world: np.ndarray, matcher: str = "
             raise RuntimeError(f"{capture.root}: COLMAP triangulated no points from the given poses")
         log.info("COLMAP: triangulated from the given poses: %s", before)
 
-        _bundle_adjust(reconstruction, threads, refine_distortion)
+        _bundle_adjust(reconstruction, threads, free_distortion)
         filtered = _filter_outliers(reconstruction)
-        _bundle_adjust(reconstruction, threads, refine_distortion)
+        _bundle_adjust(reconstruction, threads, free_distortion)
         (tmp / "tri2").mkdir()
         reconstruction = pycolmap.triangulate_points(
             reconstruction, str(database), str(capture.root), str(tmp / "tri2"),
             clear_points=True, options=_triangulation_options(threads, loose=False),
         )
-        _bundle_adjust(reconstruction, threads, refine_distortion)
+        _bundle_adjust(reconstruction, threads, free_distortion)
         filtered += _filter_outliers(reconstruction)
-        if refine_distortion:  # the lens fitted once more without the outliers it was first fitted with
-            _bundle_adjust(reconstruction, threads, refine_distortion)
+        if free_distortion:  # the lens fitted once more without the outliers it was first fitted with
+            _bundle_adjust(reconstruction, threads, free_distortion)
         after = _summary(reconstruction)
         log.info("COLMAP: after bundle adjustment: %s", after)
 
@@ -390,7 +391,7 @@ def refine_poses(capture: Capture, camera_to_world: np.ndarray, matcher: str = "
         "gauge_alignment_scale": float(np.cbrt(np.linalg.det(world_from_refined[:3, :3]))),
         "pycolmap": pycolmap.__version__,
     }
-    if not refine_distortion:
+    if not free_distortion:
         return RefinementResult(camera_to_world=refined, points_world=points, stats=stats)
     distortion, stats["distortion"] = _refined_distortion(reconstruction, capture)
     for record in stats["distortion"]:
