@@ -28,6 +28,7 @@ import torch
 import torch.nn as nn
 
 from srfpipe.srf.encodings import build_encoding
+from srfpipe.srf.warp import build_warp
 
 
 class _TruncExp(torch.autograd.Function):
@@ -95,6 +96,18 @@ def uncontract(v: torch.Tensor) -> torch.Tensor:
     return torch.where(norm <= 1.0, v, v / norm * outer_norm)
 
 
+def grid_coordinates(x: torch.Tensor, grid_min, grid_max, warp=None) -> torch.Tensor:
+    """Scene-frame points (M, 3) -> u, [-1, 1]^3 over the grid (through `warp` when there is one)."""
+    w = x.float() if warp is None else warp(x)
+    return (w - 0.5 * (grid_min + grid_max)) / (0.5 * (grid_max - grid_min))
+
+
+def grid_points(u: torch.Tensor, grid_min, grid_max, warp=None) -> torch.Tensor:
+    """Inverse of `grid_coordinates`."""
+    w = u * (0.5 * (grid_max - grid_min)) + 0.5 * (grid_min + grid_max)
+    return w if warp is None else warp.inverse(w)
+
+
 def mlp(inputs: int, hidden: int, outputs: int, layers: int = 1) -> nn.Sequential:
     """`layers` hidden ReLU layers of width `hidden`."""
     modules: list[nn.Module] = []
@@ -127,6 +140,14 @@ class SemanticField(nn.Module):
         c = self.config
         self.register_buffer("box_min", torch.tensor(c["box_min"], dtype=torch.float32))
         self.register_buffer("box_max", torch.tensor(c["box_max"], dtype=torch.float32))
+        # the grid's frame (srf/warp.py): the box itself, or a perspective frustum whose range in
+        # warped coordinates is grid_min..grid_max
+        self.warp = build_warp(c.get("warp"))
+        # (from the config, so not in the weights: a field saved before them loads unchanged)
+        self.register_buffer("grid_min", torch.tensor(c.get("grid_min", c["box_min"]), dtype=torch.float32),
+                             persistent=False)
+        self.register_buffer("grid_max", torch.tensor(c.get("grid_max", c["box_max"]), dtype=torch.float32),
+                             persistent=False)
         self.contraction = bool(c["contraction"])
         self.static_shapes = False  # SRFModel.use_static_shapes: every lookup the same size (CUDA graphs)
         self.inner = build_encoding(c["inner"], device)
@@ -193,10 +214,8 @@ class SemanticField(nn.Module):
     # ---------------------------------------------------------------- geometry
 
     def box_coordinates(self, x: torch.Tensor) -> torch.Tensor:
-        """Scene-frame points (M, 3) -> box coordinates u ([-1, 1]^3 inside the model box)."""
-        centre = 0.5 * (self.box_min + self.box_max)
-        half = 0.5 * (self.box_max - self.box_min)
-        return (x.float() - centre) / half
+        """Scene-frame points (M, 3) -> box coordinates u ([-1, 1]^3 inside the model's grid)."""
+        return grid_coordinates(x, self.grid_min, self.grid_max, self.warp)
 
     def _encode(self, x: torch.Tensor, inner, outer) -> tuple[torch.Tensor, torch.Tensor]:
         """Features (M, F) from the inner/outer encodings, and a mask of points the field covers."""

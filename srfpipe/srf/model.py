@@ -17,6 +17,7 @@ from srfpipe.memory import check_allocation
 from srfpipe.srf import rendering
 from srfpipe.srf.field import SemanticField, grid_resolution
 from srfpipe.srf.sampling import OccupancyGrid, RaySamples, SamplerSettings, box_extent, generate_intervals, pack
+from srfpipe.srf.warp import build_warp, perspective_grid
 
 # A sample "carries weight" above FLOATER_WEIGHT (the fog criterion of the any-capture issue); it
 # is a floater when it lies more than FLOATER_CELLS grid cells (plus its own length) from the
@@ -87,11 +88,13 @@ def default_features(grid_levels: int | None) -> int:
 
 
 def build_model_config(options, bounds_world, scene_from_world, classes: list[str],
-                       num_images: int, device="cpu") -> dict:
+                       num_images: int, device="cpu", cameras=None) -> dict:
     """Model config from the `train` settings and the scene geometry (bounds, normalization).
 
     `options`: TrainSettings, or a dict of train keys (validated, the schema's defaults filled in),
     so a caller that skips the workflow (a notebook, a benchmark) builds the workflow's model.
+    `cameras`: (camera_to_scene (N, 4, 4), intrinsics (N, 4), width, height) of the training views,
+    which `train.grid_frame: perspective` lays its grid out from (srf/warp.py).
     """
     from srfpipe.settings import TrainSettings
 
@@ -106,18 +109,33 @@ def build_model_config(options, bounds_world, scene_from_world, classes: list[st
     pad = float(s.box_padding) * (box_max - box_min)
     box_min, box_max = box_min - pad, box_max + pad
     extent = box_max - box_min
-    if s.detail_size is None:  # no unit known: a fixed fraction of the scene's largest extent
+    cap = int(s.max_resolution)
+    perspective = None
+    if s.grid_frame == "perspective":
+        if cameras is None:
+            raise ValueError("train.grid_frame perspective lays the grid out from the training cameras; "
+                             "build_model_config was given none")
+        perspective = perspective_grid(*cameras, box_min, box_max, int(s.default_cells or BASE_CELLS), cap)
+        resolution = perspective["resolution"]
+        box_min, box_max = perspective["box_min"], perspective["box_max"]
+        extent = box_max - box_min
+        # the cell's width where the grid's points lie (floater tolerance, initial density)
+        detail_scene = perspective["cell_across"] * perspective["median_depth"]
+        log.info("perspective grid: %s points, %.2f px per cell across, cells %.3g world units wide at the "
+                 "median depth", " x ".join(map(str, resolution)), perspective["pixels_per_cell"],
+                 detail_scene / scale)
+    elif s.detail_size is None:  # no unit known: a fixed fraction of the scene's largest extent
         detail_scene = float(extent.max()) / float(s.default_cells or BASE_CELLS)
     else:
         detail_scene = float(s.detail_size) * scale
-    cap = int(s.max_resolution)
-    resolution = [grid_resolution(float(e), detail_scene, cap) for e in extent]
-    finest = float(extent.max()) / (max(resolution) - 1)  # the cell the (capped) grid really has
-    if detail_scene < finest * (1 - 1e-9):
-        log.warning("grid cells of %.3g world units (train.detail_size or default_cells) are finer than "
-                    "max_resolution %d points can resolve over the box: cells and steps of %.3g instead",
-                    detail_scene / scale, cap, finest / scale)
-        detail_scene = finest
+    if perspective is None:
+        resolution = [grid_resolution(float(e), detail_scene, cap) for e in extent]
+        finest = float(extent.max()) / (max(resolution) - 1)  # the cell the (capped) grid really has
+        if detail_scene < finest * (1 - 1e-9):
+            log.warning("grid cells of %.3g world units (train.detail_size or default_cells) are finer than "
+                        "max_resolution %d points can resolve over the box: cells and steps of %.3g instead",
+                        detail_scene / scale, cap, finest / scale)
+            detail_scene = finest
     encoding = s.encoding
     if encoding == "auto":
         encoding = default_encoding(device)
@@ -154,13 +172,22 @@ def build_model_config(options, bounds_world, scene_from_world, classes: list[st
                      f"Adam's two moments)", device)
     step = detail_scene * float(s.step_ratio)
     diagonal = float(np.linalg.norm(extent))
-    if diagonal / step > MAX_STEPS_ACROSS_BOX:
+    if perspective is None and diagonal / step > MAX_STEPS_ACROSS_BOX:
         finest_step = diagonal / MAX_STEPS_ACROSS_BOX
         log.warning("train.step_ratio %g gives %.3g steps across the box (memory grows with it); "
                     "step ratio %.3g instead (%d steps)", float(s.step_ratio),
                     diagonal / step, finest_step / detail_scene, MAX_STEPS_ACROSS_BOX)
         step = finest_step
-    candidates = int(math.ceil(diagonal / step)) + 1 + (s.before_samples + s.outer_samples if contraction else 0)
+    log_step, log_steps = 0.0, 0
+    if perspective is not None:
+        # steps uniform in ln t, one depth cell times step_ratio; the margin covers rays that
+        # cross the grid's depth range obliquely (generate_intervals widens the steps of any
+        # longer chord rather than leave a gap)
+        log_step = perspective["log_step"] * float(s.step_ratio)
+        depth_span = float(perspective["grid_max"][2] - perspective["grid_min"][2])
+        log_steps = min(int(math.ceil(1.25 * depth_span / log_step)) + 1, MAX_STEPS_ACROSS_BOX)
+    inside = log_steps or int(math.ceil(diagonal / step)) + 1
+    candidates = inside + (s.before_samples + s.outer_samples if contraction else 0)
     check_allocation(s.rays_per_batch * candidates * CANDIDATE_BYTES, "train.rays_per_batch",
                      f"a batch of {s.rays_per_batch} rays of {candidates} candidate intervals each", device)
     # initial opacity per step of the density grid: faintly foggy, so every cell gets gradients
@@ -169,8 +196,10 @@ def build_model_config(options, bounds_world, scene_from_world, classes: list[st
     initial_opacity = float(s.initial_opacity or TRUSTED_INITIAL_OPACITY)
     density_bias = math.log(initial_opacity / step) if density_grid else -1.0
     occupancy_resolution = [max(int(math.ceil((r - 1) / 2)), 1) for r in resolution]
+    grid_frame = {} if perspective is None else {
+        "warp": perspective["warp"], "grid_min": perspective["grid_min"], "grid_max": perspective["grid_max"]}
     return {
-        "box_min": box_min.tolist(), "box_max": box_max.tolist(),
+        "box_min": box_min.tolist(), "box_max": box_max.tolist(), **grid_frame,
         "contraction": contraction, "inner": inner, "outer": outer,
         "hidden": int(s.hidden), "geo_features": int(s.geo_features),
         "sh_degree": int(s.sh_degree), "background_sh_degree": int(s.background_sh_degree or s.sh_degree),
@@ -187,6 +216,7 @@ def build_model_config(options, bounds_world, scene_from_world, classes: list[st
             "near": float(s.near), "far": float(s.far),
             "contraction": contraction, "outer_samples": int(s.outer_samples),
             "before_samples": int(s.before_samples),
+            "log_step": log_step, "log_steps": log_steps,
         },
         "occupancy": {
             "resolution": occupancy_resolution, "outer_resolution": int(s.occupancy_outer_resolution),
@@ -205,8 +235,9 @@ class SRFModel(nn.Module):
         self.settings = SamplerSettings(**config["sampler"])
         occ = config["occupancy"]
         self.occupancy = OccupancyGrid(
-            config["box_min"], config["box_max"], occ["resolution"], config["contraction"],
-            occ["outer_resolution"], step=self.settings.step, threshold=occ["threshold"], decay=occ["decay"],
+            config.get("grid_min", config["box_min"]), config.get("grid_max", config["box_max"]), occ["resolution"],
+            config["contraction"], occ["outer_resolution"], step=self.settings.step, threshold=occ["threshold"],
+            decay=occ["decay"], warp=build_warp(config.get("warp")), log_step=self.settings.log_step,
         )
         self.color_threshold = float(config["color_threshold"])
         self.extent = box_extent(config["box_min"], config["box_max"])

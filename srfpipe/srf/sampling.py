@@ -3,7 +3,8 @@ skips empty space (nerfacc's estimator, written in plain torch so it runs on CPU
 
 Intervals along a ray come from up to three segments (scene-frame distances t):
 
-* inside the model box [t_enter, t_exit]: uniform steps of `step` (a fraction of the detail size);
+* inside the model box [t_enter, t_exit]: uniform steps of `step` (a fraction of the detail size),
+  or with a perspective grid (srf/warp.py) steps uniform in ln t, as its cells are;
 * with contraction, beyond the box [t_exit, far]: `outer_samples` steps uniform in
   s = (t - a) / (t - a + L), i.e. in disparity, so far space costs a fixed number of samples;
 * with contraction, between the camera and the box [near, t_enter]: `before_samples` uniform steps.
@@ -23,7 +24,8 @@ import torch
 import torch.nn as nn
 
 from srfpipe.device import rand, randint
-from srfpipe.srf.field import contract, uncontract
+from srfpipe.srf.field import contract, grid_coordinates, grid_points, uncontract
+from srfpipe.srf.warp import PerspectiveWarp
 
 
 @dataclass
@@ -74,6 +76,18 @@ def _fixed_step_edges(start, end, step: float, count: int, jitter):
     return torch.minimum(torch.maximum(edges, start[:, None]), torch.maximum(end, start)[:, None])
 
 
+def _log_step_edges(start, end, log_step: float, count: int, jitter):
+    """count intervals tiling [start, end] uniformly in ln t, `log_step` apart or wider where
+    count such steps would not reach `end` (no gaps)."""
+    k = torch.arange(count + 1, device=start.device, dtype=start.dtype)
+    first = start.clamp_min(1e-6)  # train.near may be 0
+    span = torch.log(torch.maximum(end, first) / first)
+    step = torch.clamp_min(span / max(count - 1, 1), log_step)
+    edges = first[:, None] * torch.exp((k[None, :] - 1.0 + jitter[:, None]) * step[:, None])
+    edges[:, -1] = end  # exp(ln(end / start)) can fall an ulp short of it
+    return torch.minimum(torch.maximum(edges, start[:, None]), torch.maximum(end, start)[:, None])
+
+
 def _disparity_edges(start, far: float, scale: float, count: int, jitter):
     """count + 1 intervals tiling [start, far], uniform in s = (t - start) / (t - start + scale)."""
     k = torch.arange(count + 2, device=start.device, dtype=start.dtype)
@@ -95,6 +109,10 @@ class SamplerSettings:
     contraction: bool = True
     outer_samples: int = 48
     before_samples: int = 16
+    # a perspective grid (srf/warp.py): steps inside the box uniform in ln t, this far apart, and
+    # how many of them (the grid's depth span with a margin for oblique rays); 0: fixed steps
+    log_step: float = 0.0
+    log_steps: int = 0
 
 
 def box_extent(box_min, box_max) -> tuple[float, float]:
@@ -117,8 +135,11 @@ def generate_intervals(origins, directions, box_min, box_max, settings: SamplerS
     hit = t_exit > t0
     t1 = torch.where(hit, t_exit, t0)
     diagonal, scale = extent if extent is not None else box_extent(box_min.cpu(), box_max.cpu())
-    count_in = int(math.ceil(diagonal / settings.step)) + 1
-    parts = [_intervals(_fixed_step_edges(t0, t1, settings.step, count_in, jitter))]
+    if settings.log_step > 0:
+        parts = [_intervals(_log_step_edges(t0, t1, settings.log_step, settings.log_steps, jitter))]
+    else:
+        count_in = int(math.ceil(diagonal / settings.step)) + 1
+        parts = [_intervals(_fixed_step_edges(t0, t1, settings.step, count_in, jitter))]
     if settings.contraction:
         near = torch.full_like(t0, settings.near)
         before_end = torch.where(hit, t0, near)  # a ray that misses the box is all "beyond"
@@ -194,10 +215,14 @@ class OccupancyGrid(nn.Module):
     """
 
     def __init__(self, box_min, box_max, resolution, contraction: bool, outer_resolution: int = 32,
-                 step: float = 0.01, threshold: float = 0.01, decay: float = 0.95):
+                 step: float = 0.01, threshold: float = 0.01, decay: float = 0.95,
+                 warp: PerspectiveWarp | None = None, log_step: float = 0.0):
         super().__init__()
+        # box_min/box_max: the grid's range (in the warp's coordinates when there is a warp)
         self.register_buffer("box_min", torch.as_tensor(box_min, dtype=torch.float32).clone())
         self.register_buffer("box_max", torch.as_tensor(box_max, dtype=torch.float32).clone())
+        self.warp = warp
+        self.log_step = float(log_step)
         self.resolution = tuple(int(r) for r in resolution)
         self.contraction = bool(contraction)
         self.outer_resolution = int(outer_resolution) if contraction else 1
@@ -219,14 +244,14 @@ class OccupancyGrid(nn.Module):
         self.static_shapes = False  # SRFModel.use_static_shapes: every lookup the same size (CUDA graphs)
 
     def _u(self, x):
-        centre = 0.5 * (self.box_min + self.box_max)
-        half = 0.5 * (self.box_max - self.box_min)
-        return (x.float() - centre) / half
+        return grid_coordinates(x, self.box_min, self.box_max, self.warp)
 
     def _x(self, u):
-        centre = 0.5 * (self.box_min + self.box_max)
-        half = 0.5 * (self.box_max - self.box_min)
-        return u * half + centre
+        return grid_points(u, self.box_min, self.box_max, self.warp)
+
+    def _step_length(self, x):
+        """The sampler's step at scene-frame points: fixed, or in ln t with a perspective grid."""
+        return self.step if self.warp is None else self.warp.depth(x) * self.log_step
 
     def _index0(self, u):
         res = self._res0
@@ -281,8 +306,9 @@ class OccupancyGrid(nn.Module):
         radius0 = 0.5 * float(((self.box_max - self.box_min) / res).norm())
         for start in range(0, self.seen0.numel(), chunk):
             cells = torch.arange(start, min(start + chunk, self.seen0.numel()), device=device)
-            self.seen0[cells] = spheres_in_view(self._cell_points(0, cells), radius0, camera_to_scene,
-                                                intrinsics, width, height)[0]
+            centres = self._cell_points(0, cells)
+            radius = radius0 if self.warp is None else self._cell_radii(cells, centres)
+            self.seen0[cells] = spheres_in_view(centres, radius, camera_to_scene, intrinsics, width, height)[0]
         self.occ0.masked_fill_(~self.seen0, 0.0)
         self.binary0 &= self.seen0
         fractions = {"box": float(self.seen0.float().mean())}
@@ -331,6 +357,16 @@ class OccupancyGrid(nn.Module):
         inner = centre.abs() < 1.0
         return (inner[:, None, None] & inner[None, :, None] & inner[None, None, :]).reshape(-1)
 
+    def _cell_radii(self, cells: torch.Tensor, centres: torch.Tensor) -> torch.Tensor:
+        """Scene-frame radius (M,) of the sphere round each level-0 cell's corners (a perspective
+        grid's cells grow with depth)."""
+        rx, ry, rz = self.resolution
+        ijk = torch.stack([cells // (ry * rz), (cells // rz) % ry, cells % rz], dim=-1)
+        res = torch.tensor(self.resolution, device=cells.device, dtype=torch.float32)
+        corners = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], device=cells.device)
+        u = ((ijk[:, None] + corners) / res * 2.0 - 1.0).reshape(-1, 3)
+        return (self._x(u).reshape(-1, 8, 3) - centres[:, None]).norm(dim=-1).amax(dim=1)
+
     def _cell_points(self, level: int, cells: torch.Tensor, generator=None) -> torch.Tensor:
         """A jittered scene-frame point inside each of the given cells (without a generator: the
         centres)."""
@@ -369,7 +405,7 @@ class OccupancyGrid(nn.Module):
             values = torch.empty(cells.shape[0], device=occ.device)
             for start in range(0, cells.shape[0], chunk):
                 points = self._cell_points(level, cells[start:start + chunk], generator)
-                values[start:start + chunk] = density_fn(points).float() * self.step
+                values[start:start + chunk] = density_fn(points).float() * self._step_length(points)
             current = occ[cells] * self.decay
             occ.index_put_((cells,), torch.maximum(current, values))
             if level == 0:

@@ -63,9 +63,12 @@ def render(origins, directions):
 
 
 def write_scene(folder, views: int = 16, width: int = 48, height: int = 36, radius: float = 2.2,
-                heights=(0.4, 1.2), fov_deg: float = 50.0, pose_errors: dict | None = None) -> tuple[Path, Path]:
+                heights=(0.4, 1.2), fov_deg: float = 50.0, pose_errors: dict | None = None,
+                arc_deg: float = 360.0) -> tuple[Path, Path]:
     """Render the scene from rings of cameras; write folder/images.zarr and folder/labels.zarr.
 
+    `arc_deg` < 360: the cameras span that arc of the ring round +x, all looking one way (a
+    forward-facing capture).
     `pose_errors` {view: (3,) axis-angle in radians}: those views are rendered from their true
     camera but recorded turned by that rotation in their camera frame, as a calibration that got
     them wrong (for camera refinement); `pose_errors` is recorded in images.zarr."""
@@ -76,7 +79,8 @@ def write_scene(folder, views: int = 16, width: int = 48, height: int = 36, radi
     intrinsics = np.array([fx, fx, width / 2, height / 2])
     poses, images, labels, depths = [], [], [], []
     for i in range(views):
-        angle = 2 * np.pi * i / views
+        angle = (2 * np.pi * i / views if arc_deg >= 360.0
+                 else np.radians(arc_deg) * (i / max(views - 1, 1) - 0.5))
         z = heights[i % len(heights)]
         pose = look_at((radius * np.cos(angle), radius * np.sin(angle), z), (0.0, 0.0, 0.35))
         origins, directions = pixel_rays(pose, intrinsics, width, height)

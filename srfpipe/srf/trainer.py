@@ -321,6 +321,14 @@ def resolve_grid_defaults(settings, data) -> dict:
     its cells gets one level unless it sets grid_levels too."""
     changes = {}
     auto_cells, auto_levels = settings.default_cells is None, settings.grid_levels is None
+    if settings.grid_frame == "perspective" and settings.detail_size is None:
+        # the perspective grid sizes its cells in pixels itself (one each, srf/warp.py): the cap
+        # and the levels of a grid whose finest level matches a pixel
+        if auto_cells:
+            changes["default_cells"] = FINEST_CELLS
+        if auto_levels:
+            changes["grid_levels"] = MULTI_LEVELS
+        auto_cells = auto_levels = False
     if auto_cells or auto_levels:
         coarse = pixels_per_cell(data, BASE_CELLS)
         # a scene that sets its cells (default_cells or detail_size) chose its grid: one level
@@ -674,7 +682,9 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
         log.info("semantic loss on the %d labelled of %d frames", int(data.labelled.sum()), data.count)
 
     torch.manual_seed(settings.seed)
-    config = build_model_config(settings, data.bounds_world, data.scene_from_world, data.classes, data.count, device)
+    config = build_model_config(settings, data.bounds_world, data.scene_from_world, data.classes, data.count, device,
+                                cameras=(data.poses_scene[train_views], data.intrinsics[train_views],
+                                         data.width, data.height))
     model = SRFModel(config, device).to(device)
     model.field.record_training_cameras(data.poses_scene, train_views)
     seen_fraction = None
