@@ -14,7 +14,8 @@ the box is folded into [-2, 2]^3 as in mip-NeRF 360 / Nerfacto (L-inf norm):
     contract(u) = u                              if |u|_inf <= 1
                 = (2 - 1/|u|_inf) u / |u|_inf    otherwise
 
-so unbounded backgrounds (a ground plane, far trees) live in the field too. The dense encoding
+so unbounded backgrounds (a ground plane, far trees) live in the field too. With `train.grid_frame: perspective`
+u covers the grid's range in the cameras' (x/z, y/z, ln z) instead of the box (srf/warp.py). The dense encoding
 then uses a fine grid inside the box and a coarse one for the contracted shell (the detail is in
 the box); the hash encoding covers the whole contracted cube. A learned background colour model
 (a function of direction only, for the sky) takes whatever transmittance is left at the far end.
