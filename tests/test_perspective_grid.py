@@ -10,7 +10,7 @@ import torch
 
 from srfpipe.cameras import look_at
 from srfpipe.config import section_defaults
-from srfpipe.srf.field import contract, uncontract
+from srfpipe.srf.field import contract, grid_points, uncontract
 from srfpipe.srf.io import read_curve, read_srf
 from srfpipe.srf.model import SRFModel, build_model_config
 from srfpipe.srf.sampling import generate_intervals
@@ -47,9 +47,7 @@ def cell_pixels(model: SRFModel, depth: float) -> tuple[float, float]:
     u = field.box_coordinates(torch.tensor([[0.0, 0.0, depth]]))
     res = torch.tensor(model.config["inner"]["resolution"], dtype=torch.float32)
     cell_u = 2.0 / (res - 1)
-    points = field.warp.inverse(
-        (torch.cat([u, u + cell_u * torch.eye(3)]) * 0.5 * (field.grid_max - field.grid_min)
-         + 0.5 * (field.grid_max + field.grid_min)))
+    points = grid_points(torch.cat([u, u + cell_u * torch.eye(3)]), field.grid_min, field.grid_max, field.warp)
     across = float((points[1] - points[0]).norm())
     deep = float((points[3] - points[0]).norm())
     return across * FOCAL / depth, deep * FOCAL / depth
@@ -65,9 +63,9 @@ def test_a_cell_spans_the_same_pixels_near_and_far_where_a_box_cell_does_not():
     # against 98 cells of the width's log step, so 1.5 times as deep
     assert near[0] <= near[1] <= 2.0 * near[0], near
     poses, intrinsics = forward_rig()
-    box = build_model_config({"default_cells": 64}, BOX, np.eye(4), ["apple"], len(poses))
-    cell = (BOX[1] - BOX[0]).max() / (max(box["inner"]["resolution"]) - 1)
-    assert cell * FOCAL / 4.0 > 5.0 * cell * FOCAL / 28.0  # the box's near cells are 7x as coarse in pixels
+    box = SRFModel(build_model_config({"default_cells": 64}, BOX, np.eye(4), ["apple"], len(poses)))
+    box_near, box_far = cell_pixels(box, 4.0), cell_pixels(box, 28.0)
+    assert box_near[0] > 5.0 * box_far[0], (box_near, box_far)  # the box's near cells are 7x as coarse in pixels
 
 
 def test_coordinates_round_trip_in_front_and_stay_finite_anywhere():

@@ -26,6 +26,8 @@ import numpy as np
 import torch
 import torch.nn as nn
 
+from srfpipe import cameras
+
 # the grid covers the part of the box that at least this share of the training cameras sees: on
 # the fern, a quarter gave a pyramid 1.82 wide in tangent (the cameras' baseline seen from the box's
 # near end), so 1.94 pixels a cell at the 192-cell cap; a half gives 1.27 and 1.35 pixels
@@ -109,29 +111,24 @@ def perspective_grid(poses_scene, intrinsics, width: int, height: int, box_min, 
     Across, a cell spans one pixel at the cameras' median focal length, up to `cells` points on the
     wider axis; in depth it is as deep as it is wide (ln z steps of the same size), up to `cells`.
     Points seen by fewer cameras (the sides that only the outermost views reach) fall to the shell."""
-    poses = torch.as_tensor(np.asarray(poses_scene), dtype=torch.float64)
-    k = torch.as_tensor(np.asarray(intrinsics), dtype=torch.float64)
+    poses = np.asarray(poses_scene, dtype=np.float64)
+    k = np.asarray(intrinsics, dtype=np.float64)
     lo, hi = np.asarray(box_min, np.float64), np.asarray(box_max, np.float64)
-    ticks = [torch.linspace(a, b, samples, dtype=torch.float64) for a, b in zip(lo, hi)]
-    points = torch.stack(torch.meshgrid(*ticks, indexing="ij"), -1).reshape(-1, 3)
-    seen = torch.zeros(points.shape[0], dtype=torch.float64)
-    for pose, (fx, fy, cx, cy) in zip(poses, k.tolist()):
-        p = (points - pose[:3, 3]) @ pose[:3, :3]
-        z = p[:, 2]
-        u, v = fx * p[:, 0] / z + cx, fy * p[:, 1] / z + cy
-        seen += ((z > 0) & (u >= 0) & (u <= width) & (v >= 0) & (v <= height)).double()
-    origin, rotation = cameras_frame(poses.numpy())
-    kept = points[seen >= max(min_views * poses.shape[0], 1.0)]
-    depth = (kept - torch.from_numpy(origin)) @ torch.from_numpy(rotation[2])
-    kept = kept[depth > 0]
+    ticks = [np.linspace(a, b, samples) for a, b in zip(lo, hi)]
+    points = np.stack(np.meshgrid(*ticks, indexing="ij"), -1).reshape(-1, 3)
+    seen = sum(cameras.in_view(points, pose, k_i, width, height).astype(np.int64) for pose, k_i in zip(poses, k))
+    origin, rotation = cameras_frame(poses)
+    kept = points[seen >= max(min_views * len(poses), 1.0)]
+    depth = (kept - origin) @ rotation[2]
+    kept, depth = kept[depth > 0], depth[depth > 0]
     if kept.shape[0] < 8:
         raise ValueError("train.grid_frame perspective: fewer than 8 points of the scene box lie in front of the "
                          f"cameras in at least {min_views:.0%} of the views; use grid_frame: box")
-    near, far = float(depth[depth > 0].min()), float(depth.max())
+    near, far = float(depth.min()), float(depth.max())
     warp = PerspectiveWarp(origin, rotation, MIN_DEPTH_FRACTION * near, far)
-    w = warp(kept.float()).double()
+    w = warp(torch.from_numpy(kept).float()).double()
     w_min, w_max = w.min(0).values.numpy(), w.max(0).values.numpy()
-    focal = float(k[:, :2].median())
+    focal = float(torch.as_tensor(k[:, :2]).median())
     across = w_max[:2] - w_min[:2]
     # one pixel a cell across, at most `cells` points on the wider axis (and `cap` on any)
     cell = max(1.0 / focal, float(across.max()) / (min(cells, cap) - 1))
