@@ -328,8 +328,9 @@ class TrainSettings(SettingsSection):
     set by detail_size / default_cells)"""
     max_resolution: int = 256
     """cap on grid points per axis (memory)"""
-    grid_frame: str = 'box'
-    """box = a grid of equal cells over the model box"""
+    grid_frame: str = 'auto'
+    """auto = perspective where the cameras all look one way (they do not stand round their focus
+    point and their viewing directions agree: a forward-facing capture), box otherwise"""
     fine_levels: int | None = None
     """dense encoding: levels finer than the grid, each twice as fine as the one before, stored in a
     hashed table of 2^fine_log2_table_size rows (detail beyond what a dense grid can afford;

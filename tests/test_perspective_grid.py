@@ -16,6 +16,7 @@ from srfpipe.srf.model import SRFModel, build_model_config
 from srfpipe.srf.sampling import generate_intervals
 from srfpipe.srf.synthetic import write_scene
 from srfpipe.srf.trainer import train
+from srfpipe.srf.warp import looks_one_way
 
 WIDTH, HEIGHT, FOCAL = 80, 60, 70.0
 # held-out PSNR of the forward-facing test capture at 120 steps: the box grid reaches 20.78 dB, the
@@ -126,15 +127,35 @@ def test_cameras_round_a_subject_are_told_to_use_the_box():
         build_model_config({"grid_frame": "perspective"}, box, np.eye(4), ["apple"], 8)
 
 
+def test_auto_chooses_the_perspective_grid_only_for_cameras_that_look_one_way():
+    forward, _ = forward_rig()
+    assert looks_one_way(forward.numpy())
+    ring = np.stack([look_at(np.array([5.0 * np.cos(a), 5.0 * np.sin(a), 1.0]), np.zeros(3))
+                     for a in np.linspace(0.0, 2.0 * np.pi, 8, endpoint=False)])
+    assert not looks_one_way(ring)
+    # half a turn round a subject: the cameras stand round it, though they all face one half-space
+    half = np.stack([look_at(np.array([5.0 * np.cos(a), 5.0 * np.sin(a), 1.0]), np.zeros(3))
+                     for a in np.linspace(0.0, np.pi, 8)])
+    assert not looks_one_way(half)
+    _, intrinsics = forward_rig()
+    auto = build_model_config({"grid_frame": "auto", "default_cells": 64}, BOX, np.eye(4), ["apple"], len(forward),
+                              cameras=(forward, intrinsics, WIDTH, HEIGHT))
+    assert auto["warp"]["type"] == "perspective"
+    # without cameras to lay it out from, the box
+    assert "warp" not in build_model_config({"grid_frame": "auto"}, BOX, np.eye(4), ["apple"], len(forward))
+
+
 def test_a_forward_facing_capture_trains_through_the_perspective_grid(tmp_path):
     images, labels = write_scene(tmp_path, views=10, width=32, height=24, arc_deg=40.0)
     out = tmp_path / "srf.zarr"
     options = section_defaults("train")
     options.update(iterations=120, rays_per_batch=512, outer_resolution=12, hidden=32, outer_samples=16,
                    before_samples=8, checkpoint_every=0, log_every=10, eval_every=120, occupancy_update_every=8,
-                   occupancy_warmup=16, time_budget=0, grid_frame="perspective")
+                   occupancy_warmup=16, time_budget=0, grid_frame="auto")
     train(images, labels, out, options, holdout_every=5)
     model, attrs = read_srf(out)
+    # auto chose the perspective grid for these cameras, which span 40 degrees of a ring
+    assert attrs["config"]["grid_frame"] == "perspective"
     assert model.config["warp"]["type"] == "perspective" and model.settings.log_step > 0
     heldout = read_curve(out, "eval_curve")["psnr"][-1]
     assert heldout > HELDOUT_PSNR, heldout

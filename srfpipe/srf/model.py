@@ -17,7 +17,7 @@ from srfpipe.memory import check_allocation
 from srfpipe.srf import rendering
 from srfpipe.srf.field import SemanticField, grid_resolution
 from srfpipe.srf.sampling import OccupancyGrid, RaySamples, SamplerSettings, box_extent, generate_intervals, pack
-from srfpipe.srf.warp import build_warp, perspective_grid
+from srfpipe.srf.warp import build_warp, looks_one_way, perspective_grid
 
 # A sample "carries weight" above FLOATER_WEIGHT (the fog criterion of the any-capture issue); it
 # is a floater when it lies more than FLOATER_CELLS grid cells (plus its own length) from the
@@ -94,7 +94,8 @@ def build_model_config(options, bounds_world, scene_from_world, classes: list[st
     `options`: TrainSettings, or a dict of train keys (validated, the schema's defaults filled in),
     so a caller that skips the workflow (a notebook, a benchmark) builds the workflow's model.
     `cameras`: (camera_to_scene (N, 4, 4), intrinsics (N, 4), width, height) of the training views,
-    which `train.grid_frame: perspective` lays its grid out from (srf/warp.py).
+    which `train.grid_frame: perspective` lays its grid out from (srf/warp.py); `auto` without
+    them is the box.
     """
     from srfpipe.settings import TrainSettings
 
@@ -111,7 +112,10 @@ def build_model_config(options, bounds_world, scene_from_world, classes: list[st
     extent = box_max - box_min
     cap = int(s.max_resolution)
     perspective = None
-    if s.grid_frame == "perspective":
+    frame = s.grid_frame
+    if frame == "auto":  # the trainer decides it from every view first (resolve_data_defaults)
+        frame = "perspective" if cameras is not None and looks_one_way(np.asarray(cameras[0])) else "box"
+    if frame == "perspective":
         if cameras is None:
             raise ValueError("train.grid_frame perspective lays the grid out from the training cameras; "
                              "build_model_config was given none")

@@ -33,6 +33,7 @@ from srfpipe.settings import TrainSettings
 from srfpipe.srf.hooks import (Checkpoints, DivergenceWatch, HeldoutEvaluation, MetricsLog, Snapshots, TimeBudget,
                                TrainingProgress, latest_checkpoint)
 from srfpipe.srf.model import BASE_CELLS, TRUSTED_INITIAL_OPACITY, default_features
+from srfpipe.srf.warp import looks_one_way
 
 log = logging.getLogger("srfpipe.train")
 
@@ -402,6 +403,8 @@ def resolve_data_defaults(settings, data):
     """The train settings whose default depends on the capture, resolved (and recorded as such).
 
     `settings`: TrainSettings or a dict of train keys; returns TrainSettings.
+    grid_frame auto: perspective where the cameras all look one way (`warp.looks_one_way`: the
+    fern, orchard-front), box where they stand round their subject.
     initial_opacity: 0.01 per step when the bounds are known (config, ground truth), 0.001 when
     they were estimated (see TRUSTED_BOUNDS).
     background_opacity: when the capture says its background is empty (labels.background), a
@@ -425,7 +428,14 @@ def resolve_data_defaults(settings, data):
     from srfpipe.settings import TrainSettings
 
     settings = TrainSettings.from_options(settings)
-    changes = resolve_grid_defaults(settings, data)
+    frame = {}
+    if settings.grid_frame == "auto":
+        one_way = looks_one_way(data.poses_scene.detach().cpu().numpy())
+        frame["grid_frame"] = "perspective" if one_way else "box"
+        log.info("grid_frame %s (%s)", frame["grid_frame"],
+                 "the cameras all look one way" if one_way else "the cameras stand round their subject")
+        settings = settings.replace(**frame)
+    changes = {**frame, **resolve_grid_defaults(settings, data)}
     if settings.initial_opacity is None:
         trusted = data.bounds_source in TRUSTED_BOUNDS
         changes["initial_opacity"] = TRUSTED_INITIAL_OPACITY if trusted else ESTIMATED_INITIAL_OPACITY

@@ -85,6 +85,17 @@ def build_warp(config: dict | None) -> PerspectiveWarp | None:
     return PerspectiveWarp.from_config(config)
 
 
+def looks_one_way(poses_scene: np.ndarray) -> bool:
+    """Whether the cameras (camera_to_scene (N, 4, 4)) all look one way, as a forward-facing capture's
+    do: they do not stand round their focus point (`cameras.cameras_surround`) and their viewing
+    directions average to at least MIN_AXIS_AGREEMENT. `train.grid_frame: auto` lays a perspective
+    grid out for such cameras, a box grid for any other."""
+    poses = np.asarray(poses_scene, dtype=np.float64)
+    if cameras.cameras_surround(poses, cameras.focus_point(poses)):
+        return False
+    return float(np.linalg.norm(poses[:, :3, 2].mean(axis=0))) >= MIN_AXIS_AGREEMENT
+
+
 def cameras_frame(poses_scene: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(origin (3,), rotation (3, 3)): the cameras' mean centre, and rows right, down, forward from
     their mean axes (OpenCV camera frames, camera_to_scene (N, 4, 4))."""
