@@ -187,13 +187,9 @@ def check_rotation(matrix: np.ndarray, tolerance: float = 1e-3) -> str | None:
     return None
 
 
-def focus_point(camera_to_world: np.ndarray) -> np.ndarray:
-    """The point closest (least squares) to every camera's optical axis: what the cameras look at.
-
-    When the axes are (nearly) parallel, as in a forward-facing capture, there is no such point;
-    then it is the mean camera centre moved forward along the mean viewing direction by the spread
-    of the camera centres (at least 1 world unit).
-    """
+def axes_meeting_point(camera_to_world: np.ndarray) -> np.ndarray | None:
+    """The point closest (least squares) to every camera's optical axis, in front of the cameras;
+    None when the axes are (nearly) parallel or meet behind the cameras."""
     centres = camera_to_world[:, :3, 3]
     axes = camera_to_world[:, :3, 2]
     projectors = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]  # I - d d^T per camera
@@ -202,9 +198,23 @@ def focus_point(camera_to_world: np.ndarray) -> np.ndarray:
     eigenvalues = np.linalg.eigvalsh(a)
     if eigenvalues[0] > 1e-2 * eigenvalues[-1]:
         point = np.linalg.solve(a, b)
-        # the axes must meet in front of the cameras, not behind them
         if np.median(np.einsum("ni,ni->n", point[None] - centres, axes)) > 0:
             return point
+    return None
+
+
+def focus_point(camera_to_world: np.ndarray) -> np.ndarray:
+    """What the cameras look at: where their optical axes meet (`axes_meeting_point`).
+
+    When the axes are (nearly) parallel, as in a forward-facing capture, there is no such point;
+    then it is the mean camera centre moved forward along the mean viewing direction by the spread
+    of the camera centres (at least 1 world unit).
+    """
+    point = axes_meeting_point(camera_to_world)
+    if point is not None:
+        return point
+    centres = camera_to_world[:, :3, 3]
+    axes = camera_to_world[:, :3, 2]
     spread = max(float(np.linalg.norm(centres - centres.mean(0), axis=1).max()), 1.0)
     direction = axes.mean(0) / max(np.linalg.norm(axes.mean(0)), 1e-9)
     return centres.mean(0) + spread * direction

@@ -87,13 +87,16 @@ def build_warp(config: dict | None) -> PerspectiveWarp | None:
 
 def looks_one_way(poses_scene: np.ndarray) -> bool:
     """Whether the cameras (camera_to_scene (N, 4, 4)) all look one way, as a forward-facing capture's
-    do: they do not stand round their focus point (`cameras.cameras_surround`) and their viewing
-    directions average to at least MIN_AXIS_AGREEMENT. `train.grid_frame: auto` lays a perspective
-    grid out for such cameras, a box grid for any other."""
+    do: their viewing directions average to at least MIN_AXIS_AGREEMENT, and they do not stand round
+    the point where their axes meet (`cameras.cameras_surround`). Parallel axes meet nowhere: such
+    cameras look one way (`focus_point`'s stand-in point, as far ahead as they are spread, would put
+    a symmetric rig's corners exactly 90 degrees apart). `train.grid_frame: auto` lays a
+    perspective grid out for such cameras, a box grid for any other."""
     poses = np.asarray(poses_scene, dtype=np.float64)
-    if cameras.cameras_surround(poses, cameras.focus_point(poses)):
+    if float(np.linalg.norm(poses[:, :3, 2].mean(axis=0))) < MIN_AXIS_AGREEMENT:
         return False
-    return float(np.linalg.norm(poses[:, :3, 2].mean(axis=0))) >= MIN_AXIS_AGREEMENT
+    meeting = cameras.axes_meeting_point(poses)
+    return meeting is None or not cameras.cameras_surround(poses, meeting)
 
 
 def cameras_frame(poses_scene: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
