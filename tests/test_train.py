@@ -407,15 +407,14 @@ def test_progress_bar_counts_seconds_of_a_time_budget():
 
 
 def camera_ring_data(focal: float, distance: float = 3.0, n: int = 8):
-    """What `resolve_data_defaults` reads of a capture: a box of side 2 seen by n cameras at
-    `distance` from its centre with focal length `focal` pixels."""
+    """What `resolve_data_defaults` reads of a capture: a box of side 2 seen by n cameras on a ring
+    at `distance` from its centre, looking at it, with focal length `focal` pixels."""
     from types import SimpleNamespace
 
-    from srfpipe.cameras import scene_from_world_transform
+    from srfpipe.cameras import look_at, scene_from_world_transform
 
-    poses = np.tile(np.eye(4), (n, 1, 1))
     angles = np.linspace(0, 2 * np.pi, n, endpoint=False)
-    poses[:, :3, 3] = np.stack([distance * np.cos(angles), distance * np.sin(angles), np.zeros(n)], 1)
+    poses = np.stack([look_at(distance * np.array([np.cos(a), np.sin(a), 0.0]), np.zeros(3)) for a in angles])
     bounds = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
     return SimpleNamespace(bounds_world=bounds, scene_from_world=scene_from_world_transform(*bounds),
                            poses_scene=torch.as_tensor(poses, dtype=torch.float32),
