@@ -128,7 +128,7 @@ def test_cameras_round_a_subject_are_told_to_use_the_box():
 
 
 def test_auto_chooses_the_perspective_grid_only_for_cameras_that_look_one_way():
-    forward, _ = forward_rig()
+    forward, intrinsics = forward_rig()
     assert looks_one_way(forward.numpy())
     ring = np.stack([look_at(np.array([5.0 * np.cos(a), 5.0 * np.sin(a), 1.0]), np.zeros(3))
                      for a in np.linspace(0.0, 2.0 * np.pi, 8, endpoint=False)])
@@ -137,7 +137,6 @@ def test_auto_chooses_the_perspective_grid_only_for_cameras_that_look_one_way():
     half = np.stack([look_at(np.array([5.0 * np.cos(a), 5.0 * np.sin(a), 1.0]), np.zeros(3))
                      for a in np.linspace(0.0, np.pi, 8)])
     assert not looks_one_way(half)
-    _, intrinsics = forward_rig()
     auto = build_model_config({"grid_frame": "auto", "default_cells": 64}, BOX, np.eye(4), ["apple"], len(forward),
                               cameras=(forward, intrinsics, WIDTH, HEIGHT))
     assert auto["warp"]["type"] == "perspective"

@@ -100,8 +100,10 @@ def test_video_is_posed_through_its_chosen_frames(orbit, tmp_path):
     root, truth, bounds = orbit
     video = root / "video.avi"
     assert video.is_file()
+    # one thread: with two, pycolmap's matching and mapping order follow the threads' timing, and on a
+    # loaded host the map registered 56 % of the frames
     out = import_poses({"format": "video", "path": str(video), "max_frames": len(truth)}, None, {},
-                       tmp_path / "scene" / "poses.zarr", threads=2)
+                       tmp_path / "scene" / "poses.zarr", threads=1)
     group = open_artifact(out, stage="poses")
     info = meta(group)
     sfm = info["sfm"]
