@@ -353,9 +353,14 @@ def test_distortion_loss_by_default_only_round_a_subject_in_a_scene():
         return data
 
     orbit, facing = looking_at_origin(np.arange(0, 360, 30)), looking_at_origin(np.linspace(0, 20, 12))
+    # a forward-facing rig with parallel axes (a camera array): its axes meet nowhere
+    parallel = camera_ring_data(100.0, n=12)
+    parallel.poses_scene = torch.eye(4).repeat(12, 1, 1)
+    parallel.poses_scene[:, :2, 3] = torch.tensor([[x, y] for x in np.linspace(-1, 1, 4) for y in np.linspace(-0.5, 0.5, 3)])
     assert SURROUNDING_SCENE_DISTORTION > 0
     assert resolve_data_defaults({"distortion": None}, orbit).distortion == SURROUNDING_SCENE_DISTORTION
     assert resolve_data_defaults({"distortion": None}, facing).distortion == 0.0
+    assert resolve_data_defaults({"distortion": None}, parallel).distortion == 0.0
     assert resolve_data_defaults({"distortion": 0.002}, orbit).distortion == 0.002
     orbit.background_empty = True
     assert resolve_data_defaults({"distortion": None}, orbit).distortion == 0.0

@@ -281,9 +281,12 @@ SURROUNDING_SCENE_DISTORTION = 0.01
 
 def round_a_subject_in_a_scene(poses_scene, background_empty: bool) -> bool:
     """Where the distortion loss belongs: a background that is a scene, and cameras that stand
-    round their focus point (`cameras.cameras_surround`)."""
+    round their focus point (`cameras.cameras_surround`). Cameras that look one way
+    (`warp.looks_one_way`) never do: with parallel axes `focus_point`'s stand-in point puts a
+    symmetric rig's opposite corners exactly 90 degrees apart, and rounding decided."""
     poses = np.asarray(poses_scene, dtype=np.float64)
-    return not background_empty and cameras.cameras_surround(poses, cameras.focus_point(poses))
+    return (not background_empty and not looks_one_way(poses)
+            and cameras.cameras_surround(poses, cameras.focus_point(poses)))
 
 
 # The grid's default cell count, and the cap of the finest level when the pixels ask for more.
