@@ -2,6 +2,7 @@
 all look one way: cells that span the same pixels near and far, samples that tile every ray,
 coordinates that stay finite anywhere, and a forward-facing capture that trains through it."""
 
+import logging
 import math
 
 import numpy as np
@@ -142,6 +143,31 @@ def test_auto_chooses_the_perspective_grid_only_for_cameras_that_look_one_way():
     assert auto["warp"]["type"] == "perspective"
     # without cameras to lay it out from, the box
     assert "warp" not in build_model_config({"grid_frame": "auto"}, BOX, np.eye(4), ["apple"], len(forward))
+
+
+def test_auto_keeps_the_box_grid_where_the_cameras_barely_see_the_box(caplog):
+    """Bounds given beside the views (a config box the forward cameras do not look into): a
+    perspective grid cannot be laid out there. Asked for, it is a clear error; by default (auto) the
+    box grid is built, in the trainer and in build_model_config alike, and the log says why."""
+    from tests.test_train import camera_ring_data
+    from srfpipe.srf.trainer import resolve_data_defaults
+
+    poses, intrinsics = forward_rig()
+    aside = BOX + np.array([200.0, 0.0, 0.0])  # far to the side of every view
+    cameras = (poses, intrinsics, WIDTH, HEIGHT)
+    with pytest.raises(ValueError, match="use grid_frame: box"):
+        build_model_config({"grid_frame": "perspective"}, aside, np.eye(4), ["apple"], len(poses), cameras=cameras)
+    assert "warp" not in build_model_config({"grid_frame": "auto"}, aside, np.eye(4), ["apple"], len(poses),
+                                            cameras=cameras)
+    data = camera_ring_data(FOCAL, n=len(poses))
+    data.poses_scene, data.intrinsics, data.width, data.height = poses, intrinsics, WIDTH, HEIGHT
+    data.scene_from_world = np.eye(4)
+    data.bounds_world = BOX
+    assert resolve_data_defaults({"grid_frame": "auto"}, data).grid_frame == "perspective"
+    data.bounds_world = aside
+    with caplog.at_level(logging.WARNING, logger="srfpipe.train"):
+        assert resolve_data_defaults({"grid_frame": "auto"}, data).grid_frame == "box"
+    assert "see next to nothing of the model box" in caplog.text
 
 
 def test_a_forward_facing_capture_trains_through_the_perspective_grid(tmp_path):

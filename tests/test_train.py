@@ -423,7 +423,7 @@ def camera_ring_data(focal: float, distance: float = 3.0, n: int = 8):
     bounds = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
     return SimpleNamespace(bounds_world=bounds, scene_from_world=scene_from_world_transform(*bounds),
                            poses_scene=torch.as_tensor(poses, dtype=torch.float32),
-                           intrinsics=torch.tensor([[focal, focal, 64.0, 64.0]] * n),
+                           intrinsics=torch.tensor([[focal, focal, 64.0, 64.0]] * n), width=128, height=128,
                            bounds_source="config", gt_label=None, background_empty=False, classes=[],
                            backdrop=None, multihot=None, probability=None)
 

@@ -17,7 +17,7 @@ from srfpipe.memory import check_allocation
 from srfpipe.srf import rendering
 from srfpipe.srf.field import SemanticField, grid_resolution
 from srfpipe.srf.sampling import OccupancyGrid, RaySamples, SamplerSettings, box_extent, generate_intervals, pack
-from srfpipe.srf.warp import build_warp, looks_one_way, perspective_grid
+from srfpipe.srf.warp import build_warp, looks_one_way, perspective_fits, perspective_grid
 
 # A sample "carries weight" above FLOATER_WEIGHT (the fog criterion of the any-capture issue); it
 # is a floater when it lies more than FLOATER_CELLS grid cells (plus its own length) from the
@@ -87,6 +87,17 @@ def default_features(grid_levels: int | None) -> int:
     return 8 if int(grid_levels or 1) > 1 else 16
 
 
+def scene_box(bounds_world, scene_from_world, padding: float) -> tuple[np.ndarray, np.ndarray]:
+    """(box_min, box_max) in the scene frame: the world bounds' corners carried into it, and the
+    box round them grown by `padding` of its extent on each side (train.box_padding)."""
+    bounds_world = np.asarray(bounds_world, dtype=np.float64)
+    corners = np.array(np.meshgrid(*bounds_world.T)).reshape(3, -1).T
+    corners_scene = corners @ np.asarray(scene_from_world)[:3, :3].T + np.asarray(scene_from_world)[:3, 3]
+    box_min, box_max = corners_scene.min(0), corners_scene.max(0)
+    pad = padding * (box_max - box_min)
+    return box_min - pad, box_max + pad
+
+
 def build_model_config(options, bounds_world, scene_from_world, classes: list[str],
                        num_images: int, device="cpu", cameras=None) -> dict:
     """Model config from the `train` settings and the scene geometry (bounds, normalization).
@@ -104,17 +115,14 @@ def build_model_config(options, bounds_world, scene_from_world, classes: list[st
     if bounds_world.shape != (2, 3) or not np.all(bounds_world[1] > bounds_world[0]):
         raise ValueError(f"scene bounds must be [[min xyz], [max xyz]] with min < max, got {bounds_world.tolist()}")
     scale = scene_scale(scene_from_world)
-    corners = np.array(np.meshgrid(*bounds_world.T)).reshape(3, -1).T
-    corners_scene = corners @ np.asarray(scene_from_world)[:3, :3].T + np.asarray(scene_from_world)[:3, 3]
-    box_min, box_max = corners_scene.min(0), corners_scene.max(0)
-    pad = float(s.box_padding) * (box_max - box_min)
-    box_min, box_max = box_min - pad, box_max + pad
+    box_min, box_max = scene_box(bounds_world, scene_from_world, float(s.box_padding))
     extent = box_max - box_min
     cap = int(s.max_resolution)
     perspective = None
     frame = s.grid_frame
     if frame == "auto":  # the trainer decides it from every view first (resolve_data_defaults)
-        frame = "perspective" if cameras is not None and looks_one_way(np.asarray(cameras[0])) else "box"
+        one_way = cameras is not None and looks_one_way(np.asarray(cameras[0]))
+        frame = "perspective" if one_way and perspective_fits(*cameras, box_min, box_max) else "box"
     if frame == "perspective":
         if cameras is None:
             raise ValueError("train.grid_frame perspective lays the grid out from the training cameras; "

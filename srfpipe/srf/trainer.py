@@ -32,8 +32,8 @@ from srfpipe import cameras
 from srfpipe.settings import TrainSettings
 from srfpipe.srf.hooks import (Checkpoints, DivergenceWatch, HeldoutEvaluation, MetricsLog, Snapshots, TimeBudget,
                                TrainingProgress, latest_checkpoint)
-from srfpipe.srf.model import BASE_CELLS, TRUSTED_INITIAL_OPACITY, default_features
-from srfpipe.srf.warp import looks_one_way
+from srfpipe.srf.model import BASE_CELLS, TRUSTED_INITIAL_OPACITY, default_features, scene_box
+from srfpipe.srf.warp import looks_one_way, perspective_fits
 
 log = logging.getLogger("srfpipe.train")
 
@@ -407,7 +407,7 @@ def resolve_data_defaults(settings, data):
 
     `settings`: TrainSettings or a dict of train keys; returns TrainSettings.
     grid_frame auto: perspective where the cameras all look one way (`warp.looks_one_way`: the
-    fern, orchard-front), box where they stand round their subject.
+    fern, orchard-front) and see the model box (`warp.perspective_fits`), box otherwise.
     initial_opacity: 0.01 per step when the bounds are known (config, ground truth), 0.001 when
     they were estimated (see TRUSTED_BOUNDS).
     background_opacity: when the capture says its background is empty (labels.background), a
@@ -433,10 +433,18 @@ def resolve_data_defaults(settings, data):
     settings = TrainSettings.from_options(settings)
     frame = {}
     if settings.grid_frame == "auto":
-        one_way = looks_one_way(data.poses_scene.detach().cpu().numpy())
-        frame["grid_frame"] = "perspective" if one_way else "box"
-        log.info("grid_frame %s (%s)", frame["grid_frame"],
-                 "the cameras all look one way" if one_way else "the cameras stand round their subject")
+        poses = data.poses_scene.detach().cpu().numpy()
+        one_way = looks_one_way(poses)
+        box = scene_box(data.bounds_world, data.scene_from_world, float(settings.box_padding))
+        fits = one_way and perspective_fits(poses, data.intrinsics.detach().cpu().numpy(), data.width, data.height, *box)
+        frame["grid_frame"] = "perspective" if fits else "box"
+        if one_way and not fits:
+            log.warning("grid_frame box: the cameras all look one way, but half of them see next to nothing of the "
+                        "model box (bounds %s); a perspective grid covers only what they see",
+                        np.asarray(data.bounds_world).tolist())
+        else:
+            log.info("grid_frame %s (%s)", frame["grid_frame"],
+                     "the cameras all look one way" if one_way else "the cameras stand round their subject")
         settings = settings.replace(**frame)
     changes = {**frame, **resolve_grid_defaults(settings, data)}
     if settings.initial_opacity is None:

@@ -32,6 +32,8 @@ from srfpipe import cameras
 # the fern, a quarter gave a pyramid 1.82 wide in tangent (the cameras' baseline seen from the box's
 # near end), so 1.94 pixels a cell at the 192-cell cap; a half gives 1.27 and 1.35 pixels
 MIN_VIEWS = 0.5
+# the fewest of the box's lattice points, seen so, that a perspective grid is laid out over
+MIN_SEEN_POINTS = 8
 # the cameras' unit viewing directions must average to at least this length (1: all parallel; a
 # 90-degree fan gives 0.90, the fern's 0.99, a ring 0): every point the grid holds lies in front of them
 MIN_AXIS_AGREEMENT = 0.7
@@ -117,14 +119,11 @@ def cameras_frame(poses_scene: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return poses[:, :3, 3].mean(axis=0), np.stack([right, down, forward])
 
 
-def perspective_grid(poses_scene, intrinsics, width: int, height: int, box_min, box_max, cells: int,
-                     cap: int, min_views: float = MIN_VIEWS, samples: int = 48) -> dict:
-    """The perspective grid over the part of the box (scene frame) that at least `min_views` of the
-    cameras see: its warp, its range in w, its points per axis, and the scene-frame box around it.
-
-    Across, a cell spans one pixel at the cameras' median focal length, up to `cells` points on the
-    wider axis; in depth it is as deep as it is wide (ln z steps of the same size), up to `cells`.
-    Points seen by fewer cameras (the sides that only the outermost views reach) fall to the shell."""
+def seen_box_points(poses_scene, intrinsics, width: int, height: int, box_min, box_max,
+                    min_views: float = MIN_VIEWS, samples: int = 48) -> tuple[np.ndarray, np.ndarray]:
+    """(points (M, 3), depths (M,)): the points of a `samples`^3 lattice over the box (scene frame)
+    that at least `min_views` of the cameras see, in front of them, and their depths along the
+    cameras' mean axis (`cameras_frame`): the part of the box a perspective grid covers."""
     poses = np.asarray(poses_scene, dtype=np.float64)
     k = np.asarray(intrinsics, dtype=np.float64)
     lo, hi = np.asarray(box_min, np.float64), np.asarray(box_max, np.float64)
@@ -134,10 +133,30 @@ def perspective_grid(poses_scene, intrinsics, width: int, height: int, box_min, 
     origin, rotation = cameras_frame(poses)
     kept = points[seen >= max(min_views * len(poses), 1.0)]
     depth = (kept - origin) @ rotation[2]
-    kept, depth = kept[depth > 0], depth[depth > 0]
-    if kept.shape[0] < 8:
-        raise ValueError("train.grid_frame perspective: fewer than 8 points of the scene box lie in front of the "
-                         f"cameras in at least {min_views:.0%} of the views; use grid_frame: box")
+    return kept[depth > 0], depth[depth > 0]
+
+
+def perspective_fits(poses_scene, intrinsics, width: int, height: int, box_min, box_max) -> bool:
+    """Whether a perspective grid can be laid out over the box: enough of it lies where the cameras
+    look (`seen_box_points`). A box the views barely reach (bounds given in config beside the
+    views) cannot hold one; `grid_frame: auto` then keeps the box grid."""
+    return seen_box_points(poses_scene, intrinsics, width, height, box_min, box_max)[0].shape[0] >= MIN_SEEN_POINTS
+
+
+def perspective_grid(poses_scene, intrinsics, width: int, height: int, box_min, box_max, cells: int,
+                     cap: int, min_views: float = MIN_VIEWS, samples: int = 48) -> dict:
+    """The perspective grid over the part of the box (scene frame) that at least `min_views` of the
+    cameras see: its warp, its range in w, its points per axis, and the scene-frame box around it.
+
+    Across, a cell spans one pixel at the cameras' median focal length, up to `cells` points on the
+    wider axis; in depth it is as deep as it is wide (ln z steps of the same size), up to `cells`.
+    Points seen by fewer cameras (the sides that only the outermost views reach) fall to the shell."""
+    k = np.asarray(intrinsics, dtype=np.float64)
+    kept, depth = seen_box_points(poses_scene, k, width, height, box_min, box_max, min_views, samples)
+    if kept.shape[0] < MIN_SEEN_POINTS:
+        raise ValueError(f"train.grid_frame perspective: fewer than {MIN_SEEN_POINTS} points of the scene box lie in "
+                         f"front of the cameras in at least {min_views:.0%} of the views; use grid_frame: box")
+    origin, rotation = cameras_frame(poses_scene)
     near, far = float(depth.min()), float(depth.max())
     warp = PerspectiveWarp(origin, rotation, MIN_DEPTH_FRACTION * near, far)
     w = warp(torch.from_numpy(kept).float()).double()
