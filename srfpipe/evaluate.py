@@ -232,6 +232,9 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
         pose_world = world_from_scene_pose(data.world_from_scene, data.poses_scene[index].numpy())
         if training and hasattr(field, "training_pose"):
             pose_world = field.training_pose(index, pose_world)
+        if training and getattr(field, "has_appearance", False) and "exclude_view" not in render_options:
+            # its own appearance, as it trained (not what a new view there would borrow)
+            render_options["appearance_view"] = int(index)
         rendered = field.render(pose_world, data.intrinsics[index].numpy(), data.width, data.height, supersample,
                                 **render_options)
         return rendered, data.images[index].numpy().astype(np.float64) / 255.0

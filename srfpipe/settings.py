@@ -370,6 +370,10 @@ class TrainSettings(SettingsSection):
     """weight of a penalty on how differently the colour MLP receives the latent appearance of each
     training image and of the image taken nearest to it (the one a new view there borrows): keeps
     what a single frame shows out of its embedding. 0 = ..."""
+    novel_view_appearances: int = 2
+    """with per-image appearance embeddings, a view no training image was taken from (a held-out
+    view, Render(pose) of the simulator) is rendered as the mean of what the appearance of this
+    many training images taken nearest to it makes of it, ..."""
     distortion: float | None = None
     """weight of mip-NeRF 360's distortion loss, which pulls each ray's weight into one short
     interval (against fog and floaters)"""

@@ -189,7 +189,8 @@ class ExposedField(ExactField):
 
     has_appearance = True
 
-    def render(self, camera_to_world, intrinsics, width, height, supersample=1, exclude_view=None) -> dict:
+    def render(self, camera_to_world, intrinsics, width, height, supersample=1, exclude_view=None,
+               appearance_view=None) -> dict:
         out = super().render(camera_to_world, intrinsics, width, height, supersample)
         if exclude_view is not None:
             out["rgb"] = out["rgb"] * 0.8

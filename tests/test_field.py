@@ -218,7 +218,8 @@ def test_multi_resolution_model_renders_and_learns_a_coarse_shape_through_its_co
 
 
 def test_novel_view_borrows_the_appearance_of_the_nearest_training_image():
-    options = dict(section_defaults("train"), default_cells=8, outer_resolution=4, hidden=8, appearance_dim=4)
+    options = dict(section_defaults("train"), default_cells=8, outer_resolution=4, hidden=8, appearance_dim=4,
+                   novel_view_appearances=1)
     config = build_model_config(options, [[-1, -1, -1], [1, 1, 1]], np.eye(4), [], num_images=3)
     model = SRFModel(config)
     assert model.field.nearest_training_view(torch.zeros(3), torch.tensor([0.0, 0.0, 1.0])) is None
@@ -242,6 +243,36 @@ def test_novel_view_borrows_the_appearance_of_the_nearest_training_image():
     expected = model(origins, directions, torch.full((4,), 2, dtype=torch.long))["rgb"]
     np.testing.assert_allclose(borrowed.numpy(), expected.detach().numpy(), rtol=1e-6)
     assert float((borrowed - rendered).abs().max()) > 1e-3
+
+
+def test_novel_view_is_the_weighted_mean_of_its_nearest_training_images_appearances():
+    """The default: a new view's colour is what its two nearest training images' appearances
+    make of it, weighted by 1 / distance; a view at a training image's pose keeps that image's own."""
+    options = dict(section_defaults("train"), default_cells=8, outer_resolution=4, hidden=8, appearance_dim=4)
+    assert options["novel_view_appearances"] == 2
+    model = SRFModel(build_model_config(options, [[-1, -1, -1], [1, 1, 1]], np.eye(4), [], num_images=3)).eval()
+    poses = torch.eye(4).repeat(3, 1, 1)
+    poses[:, :3, 3] = torch.tensor([[0.0, 0.0, -3.0], [0.0, 0.0, -3.4], [0.0, 0.0, -2.0]])
+    model.field.record_training_cameras(poses, [0, 1, 2])
+    with torch.no_grad():
+        model.field.appearance.weight[0] = 5.0
+        model.field.appearance.weight[1] = -5.0
+    axis = torch.tensor([0.0, 0.0, 1.0])
+    picks = model.field.nearest_training_views(torch.tensor([0.0, 0.0, -3.1]), axis, count=2)
+    assert [i for i, _ in picks] == [0, 1]
+    # 0.1 and 0.3 from the two (in box sizes, whatever the box): weights 3 : 1
+    assert [w for _, w in picks] == pytest.approx([0.75, 0.25], rel=1e-5)
+    origins = torch.tensor([[0.0, 0.0, -3.1]]).repeat(4, 1)
+    directions = axis.repeat(4, 1)
+    rendered = model.render_rays_chunked(origins, directions)["rgb"]
+    each = [model(origins, directions, torch.full((4,), i, dtype=torch.long))["rgb"].detach() for i in (0, 1)]
+    np.testing.assert_allclose(rendered.numpy(), (0.75 * each[0] + 0.25 * each[1]).numpy(), rtol=1e-5, atol=1e-6)
+    assert float((each[0] - each[1]).abs().max()) > 1e-3  # the two appearances do differ
+    # a camera at training image 1's own pose: its own appearance alone
+    assert model.field.nearest_training_views(torch.tensor([0.0, 0.0, -3.4]), axis, count=2) == [(1, 1.0)]
+    own = model.render_rays_chunked(origins * 0 + torch.tensor([0.0, 0.0, -3.4]), directions)["rgb"]
+    expected = model(origins * 0 + torch.tensor([0.0, 0.0, -3.4]), directions, torch.ones(4, dtype=torch.long))["rgb"]
+    np.testing.assert_allclose(own.numpy(), expected.detach().numpy(), rtol=1e-6)
 
 
 def test_appearance_smoothness_pulls_each_images_embedding_towards_its_nearest_neighbours():

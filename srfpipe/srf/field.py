@@ -48,6 +48,8 @@ class _TruncExp(torch.autograd.Function):
 
 
 AFFINE_APPEARANCE_DIM = 12  # a 3 x 3 colour matrix and an offset per image
+# a camera this close to a training image's (in `nearest_training_views`' distance) stands at its pose
+SAME_POSE = 1e-6
 
 
 def trunc_exp(x: torch.Tensor) -> torch.Tensor:
@@ -196,6 +198,9 @@ class SemanticField(nn.Module):
             # (K, 2) each training image and the one taken nearest to it (train.appearance_smoothness);
             # not a buffer: a trained field's file does not carry it
             self.appearance_pairs = torch.zeros((0, 2), dtype=torch.long)
+        # how many training images' appearances a new view is rendered with (fields saved before
+        # this key took the nearest image's alone)
+        self.novel_view_appearances = int(c.get("novel_view_appearances", 1))
         self.color_mlp = mlp(geo + self.sh_degree**2 + colour_appearance_dim, hidden, 3,
                              layers=int(c["color_layers"]))
         self.num_classes = int(c["num_classes"])
@@ -316,20 +321,34 @@ class SemanticField(nn.Module):
         self.appearance_pairs = self.training_neighbours()
 
     def nearest_training_view(self, origin: torch.Tensor, axis: torch.Tensor, exclude: int | None = None) -> int | None:
-        """The training image taken nearest to a camera at `origin` looking along `axis`
-        (distance in box sizes plus 1 - cos of the angle between the axes), or None; `exclude`:
-        an image that may not be chosen (a training view rendered as a new view would be)."""
+        """The training image taken nearest to a camera at `origin` looking along `axis`, or None
+        (see `nearest_training_views`)."""
+        nearest = self.nearest_training_views(origin, axis, exclude)
+        return nearest[0][0] if nearest else None
+
+    def nearest_training_views(self, origin: torch.Tensor, axis: torch.Tensor, exclude: int | None = None,
+                               count: int = 1) -> list[tuple[int, float]]:
+        """The `count` training images taken nearest to a camera at `origin` looking along `axis`
+        (distance in box sizes plus 1 - cos of the angle between the axes), each with a weight
+        proportional to 1 / that distance (the weights sum to 1); a camera at a training image's
+        own pose gets that image alone. `exclude`: an image that may not be chosen (a training view
+        rendered as a new view would be). Empty without an appearance embedding."""
         if self.appearance is None:
-            return None
+            return []
         known = torch.isfinite(self.camera_centres).all(dim=-1)
         if exclude is not None:
             known[int(exclude)] = False
-        if not bool(known.any()):
-            return None
+        count = min(int(count), int(known.sum()))
+        if count < 1:
+            return []
         size = float((self.box_max - self.box_min).max())
         axis = axis / axis.norm().clamp(min=1e-12)
         cost = (self.camera_centres - origin).norm(dim=-1) / size + (1.0 - self.camera_axes @ axis)
-        return int(torch.where(known, cost, torch.full_like(cost, float("inf"))).argmin())
+        cost, index = torch.where(known, cost, torch.full_like(cost, float("inf"))).topk(count, largest=False)
+        if float(cost[0]) < SAME_POSE:
+            return [(int(index[0]), 1.0)]
+        weight = 1.0 / cost
+        return list(zip(index.tolist(), (weight / weight.sum()).tolist()))
 
     def appearance_weights(self) -> torch.Tensor:
         """W_a (hidden, dim): the colour MLP's first-layer weights on the appearance embedding."""

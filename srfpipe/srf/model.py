@@ -218,6 +218,7 @@ def build_model_config(options, bounds_world, scene_from_world, classes: list[st
         "num_classes": len(classes),
         "appearance_dim": int(s.appearance_dim or 0), "num_images": int(num_images),
         "appearance_model": s.appearance_model,
+        "novel_view_appearances": int(s.novel_view_appearances),
         "density_bias": density_bias, "density_grid": density_grid,
         "color_layers": int(s.color_layers),
         "semantic_octaves": int(s.semantic_octaves),
@@ -402,21 +403,32 @@ class SRFModel(nn.Module):
         return out
 
     @torch.no_grad()
-    def render_rays_chunked(self, origins, directions, chunk: int = 8192, exclude_view: int | None = None) -> dict:
+    def render_rays_chunked(self, origins, directions, chunk: int = 8192, exclude_view: int | None = None,
+                            appearance_view: int | None = None) -> dict:
         """Inference over many rays in chunks; returns CPU float32 tensors. `exclude_view`: a
-        training image whose appearance embedding the rays may not borrow."""
+        training image whose appearance embedding the rays may not borrow; `appearance_view`: a
+        training image whose own appearance they take (a training view as it trained)."""
         outputs: dict[str, list] = {"rgb": [], "logits": [], "depth": [], "accumulation": [],
                                     "significant": [], "floaters": [], "candidate_samples": [],
                                     "kept_samples": []}
-        # a novel view (one camera: the rays share an origin) takes the appearance embedding of
-        # the nearest training image; on the fox that beat the mean embedding by 0.55 dB
-        nearest = self.field.nearest_training_view(origins.mean(dim=0), directions.mean(dim=0), exclude_view)
+        # a novel view (one camera: the rays share an origin) takes the appearance of the training
+        # images taken nearest to it (on the fox the nearest beat the mean embedding by 0.55 dB).
+        # Its own appearance was never recorded, so with several it is rendered as the weighted
+        # mean of what each of their appearances makes of it: what each image's embedding fitted
+        # of that image alone (blur, a pose a little off) is then shared out, not copied whole.
+        nearest = ([(int(appearance_view), 1.0)] if appearance_view is not None and self.field.appearance is not None
+                   else self.field.nearest_training_views(origins.mean(dim=0), directions.mean(dim=0), exclude_view,
+                                                          self.field.novel_view_appearances)) or [(None, 1.0)]
         for start in range(0, origins.shape[0], chunk):
-            index = None
-            if nearest is not None:
-                index = torch.full((min(chunk, origins.shape[0] - start),), nearest, dtype=torch.long,
-                                   device=origins.device)
-            out = self(origins[start:start + chunk], directions[start:start + chunk], index)
+            rays = min(chunk, origins.shape[0] - start)
+            out = None
+            for image, weight in nearest:
+                index = None if image is None else torch.full((rays,), image, dtype=torch.long, device=origins.device)
+                view = self(origins[start:start + chunk], directions[start:start + chunk], index)
+                if out is None:
+                    out = dict(view, rgb=view["rgb"].float() * weight)
+                else:  # the appearance moves the colour only: weights, depth and labels are the same
+                    out["rgb"] = out["rgb"] + view["rgb"].float() * weight
             for key in outputs:
                 if key in out:  # the sample counts exist in eval mode only
                     outputs[key].append(out[key].float().cpu())

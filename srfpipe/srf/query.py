@@ -101,7 +101,7 @@ class SemanticRadianceField:
         return self.model.field.appearance is not None
 
     def render(self, camera_to_world, intrinsics, width: int, height: int, supersample: int = 1,
-               exclude_view: int | None = None) -> dict:
+               exclude_view: int | None = None, appearance_view: int | None = None) -> dict:
         """Render(P): rgb (H, W, 3) float32 in [0, 1], semantic (H, W, C) probabilities,
         depth (H, W) distance along each ray in world units, accumulation (H, W) opacity.
 
@@ -109,7 +109,8 @@ class SemanticRadianceField:
         pixel (and a downscaled image's, an area average) integrates the light over its area: thin
         structures a pixel wide then come out as the partial coverage they have in the image.
         `exclude_view`: a training image whose appearance embedding may not be borrowed (a training
-        view rendered with the appearance a new view at its pose would get)."""
+        view rendered with the appearance a new view at its pose would get); `appearance_view`: a
+        training image whose own appearance the view takes (that image's view as it trained)."""
         import torch
 
         from srfpipe.cameras import transform_poses
@@ -130,7 +131,8 @@ class SemanticRadianceField:
         pose_scene = torch.as_tensor(transform_poses(self.scene_from_world, pose), dtype=torch.float32)
         origins, directions = image_rays(pose_scene, torch.as_tensor(k, dtype=torch.float32), width, height,
                                          supersample)
-        out = self.model.render_rays_chunked(origins.to(self.device), directions.to(self.device), 8192, exclude_view)
+        out = self.model.render_rays_chunked(origins.to(self.device), directions.to(self.device), 8192, exclude_view,
+                                              appearance_view)
 
         def per_pixel(values, *channels):  # the mean over a pixel's supersample rays
             return values.numpy().reshape(height, width, supersample**2, *channels).mean(2).astype(np.float32)
