@@ -50,7 +50,7 @@ def score(results: Path, name: str, counts: list[int]) -> dict:
                                                   if rows[str(count)][key] is not None), flush=True)
     for row in rows.values():
         row["psnr_change_db"] = row["psnr"] - rows[str(counts[0])]["psnr"]
-    return {"counts": rows, "steps": field.attrs.get("steps"), "trained_with":
+    return {"counts": rows, "steps": field.attrs.get("iterations_done"), "trained_with":
             field.model.config.get("novel_view_appearances", 1)}
 
 
