@@ -13,8 +13,9 @@ there with its panel settings and a 10-minute training (`captures.py`'s scene fi
 srf.zarr is missing. Writes benchmarks/results/appearance.json (a run of some captures keeps the
 others' rows): per capture and count, `psnr`,
 `ssim`, `train_view_psnr` (each training view with its own appearance: unchanged by the count),
-`generalization_gap_db`, `train_view_psnr_borrowed_appearance`, `appearance_gap_db`, and
-`psnr_change_db` against the count 1.
+`generalization_gap_db`, `train_view_psnr_borrowed_appearance`, `appearance_gap_db`,
+`psnr_change_db` against the count 1, and `evaluate_seconds` (the whole evaluation: held-out
+and training views, the second renders with borrowed appearance, metrics and figures).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import tempfile
+import time
 from pathlib import Path
 
 from common import REPO, machine_info, result_path, run_workflow, write_result, write_workdir
@@ -44,8 +46,10 @@ def score(results: Path, name: str, counts: list[int]) -> dict:
     for count in counts:
         field.model.field.novel_view_appearances = int(count)
         with tempfile.TemporaryDirectory() as tmp:
+            start = time.perf_counter()
             metrics = evaluate_field(field, data, Path(tmp) / "eval", {}, folder / "labels.zarr", folder / "srf.zarr")
-        rows[str(count)] = {key: metrics.get(key) for key in KEYS}
+            seconds = time.perf_counter() - start
+        rows[str(count)] = {**{key: metrics.get(key) for key in KEYS}, "evaluate_seconds": seconds}
         print(f"{name:8s} {count}  " + "  ".join(f"{key} {rows[str(count)][key]:.2f}" for key in KEYS
                                                   if rows[str(count)][key] is not None), flush=True)
     for row in rows.values():

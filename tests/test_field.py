@@ -264,7 +264,14 @@ def test_novel_view_is_the_weighted_mean_of_its_nearest_training_images_appearan
     assert [w for _, w in picks] == pytest.approx([0.75, 0.25], rel=1e-5)
     origins = torch.tensor([[0.0, 0.0, -3.1]]).repeat(4, 1)
     directions = axis.repeat(4, 1)
+    density = "sigma" if model.field.density_grid else "density"
+    read = getattr(model.field, density)
+    reads = []
+    setattr(model.field, density, lambda x: (reads.append(len(x)), read(x))[1])
     rendered = model.render_rays_chunked(origins, directions)["rgb"]
+    # one pass: the rays are sampled and their density read once; the two appearances shade the same samples
+    assert len(reads) == 1 and reads[0] > 0
+    delattr(model.field, density)
     each = [model(origins, directions, torch.full((4,), i, dtype=torch.long))["rgb"].detach() for i in (0, 1)]
     np.testing.assert_allclose(rendered.numpy(), (0.75 * each[0] + 0.25 * each[1]).numpy(), rtol=1e-5, atol=1e-6)
     assert float((each[0] - each[1]).abs().max()) > 1e-3  # the two appearances do differ
@@ -322,6 +329,10 @@ def test_the_affine_appearance_transforms_each_images_colours_and_nothing_else()
         unchanged = model(origins, directions, torch.zeros(4, dtype=torch.long))["rgb"]
     assert torch.allclose(unchanged, plain)
     assert torch.allclose(bright, plain * 1.5 + torch.tensor([0.0, 0.0, -0.1]), atol=1e-6)
+    # a blend of the two images' appearances is the blend of their renders
+    blended = model(origins, directions, appearances=[(torch.zeros(4, dtype=torch.long), 0.25),
+                                                      (torch.ones(4, dtype=torch.long), 0.75)])["rgb"].detach()
+    assert torch.allclose(blended, 0.25 * unchanged + 0.75 * bright, atol=1e-6)
 
 
 def test_a_model_built_without_validation_is_the_workflows_model():

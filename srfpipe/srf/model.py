@@ -284,9 +284,13 @@ class SRFModel(nn.Module):
         samples.candidates = candidates
         return samples
 
-    def forward(self, origins, directions, image_index=None, jitter=None) -> dict:
+    def forward(self, origins, directions, image_index=None, jitter=None, appearances=None) -> dict:
         """Render rays (R, 3) in the scene frame. Returns rgb (R, 3), logits (R, C), depth (R,)
-        (scene-frame distance along the ray), accumulation (R,), samples (number evaluated)."""
+        (scene-frame distance along the ray), accumulation (R,), samples (number evaluated).
+        `image_index` (R,): each ray's training image, whose appearance its colour takes.
+        `appearances`: in place of it, pairs (image_index, weight) whose colours are blended with
+        those weights (summing to 1); the rays are sampled and their density and semantics read
+        once, as the appearance moves the colour alone."""
         if self.training and self.capacities is not None:
             return self._forward_static(origins, directions, image_index, jitter)
         field = self.field
@@ -312,12 +316,15 @@ class SRFModel(nn.Module):
             colour_mask = significant
         else:
             shade_rays, colour_mask, shade_points = rays, mask, points
-        rgb = field.color(h, directions, image_index, ray_index=shade_rays)
+        colours = []
+        for index, weight in (appearances if appearances is not None else [(image_index, 1.0)]):
+            rgb = field.color(h, directions, index, ray_index=shade_rays)
+            rgb_pad = torch.zeros(n, k, 3, device=rgb.device).masked_scatter(colour_mask.unsqueeze(-1), rgb.float())
+            colours.append((rgb_pad, index, weight))
         logits = field.semantics(h, shade_points)
         c = logits.shape[-1]
-        rgb_pad = torch.zeros(n, k, 3, device=rgb.device).masked_scatter(colour_mask.unsqueeze(-1), rgb.float())
         sem_pad = torch.zeros(n, k, c, device=logits.device).masked_scatter(colour_mask.unsqueeze(-1), logits.float())
-        out = self._composite(directions, samples, weights, rgb_pad, sem_pad, image_index)
+        out = self._composite(directions, samples, weights, colours, sem_pad)
         out["samples"] = int(rays.numel())
         out["shaded"] = int(shade_rays.numel())
         if not self.training:
@@ -330,15 +337,19 @@ class SRFModel(nn.Module):
             out["kept_samples"] = mask.sum(dim=-1).float()
         return out
 
-    def _composite(self, directions, samples: RaySamples, weights, rgb_pad, sem_pad, image_index) -> dict:
+    def _composite(self, directions, samples: RaySamples, weights, colours: list, sem_pad) -> dict:
         """Eq. 1 and Eq. 3 over the padded samples: rgb, logits, depth, accumulation (and in
-        training the distortion loss)."""
+        training the distortion loss). `colours`: (rgb_pad, image_index, weight) per appearance;
+        Eq. 1 is linear in the samples' colours, so the blend of the rendered colours is the
+        render of the blended ones."""
         field = self.field
         n, c = weights.shape[0], sem_pad.shape[-1]
         acc = rendering.accumulation(weights)
-        color = field.image_colour(rendering.composite_background(
-            rendering.accumulate(weights, rgb_pad), acc, field.background(directions)
-        ), image_index)
+        background = field.background(directions)
+        rendered = [(field.image_colour(rendering.composite_background(
+            rendering.accumulate(weights, rgb_pad), acc, background), image_index), weight)
+            for rgb_pad, image_index, weight in colours]
+        color = rendered[0][0] if len(rendered) == 1 else sum(rgb * weight for rgb, weight in rendered)
         # Eq. 3 with detached weights: the semantic loss reaches only F_s (and background logits)
         sem_weights = weights.detach()
         sem_logits = rendering.composite_background(
@@ -397,7 +408,7 @@ class SRFModel(nn.Module):
         c = logits.shape[-1]
         rgb_pad = torch.zeros(end + 1, 3, device=rgb.device).index_copy(0, index, rgb.float())[:end].view(n, k, 3)
         sem_pad = torch.zeros(end + 1, c, device=rgb.device).index_copy(0, index, logits.float())[:end].view(n, k, c)
-        out = self._composite(directions, samples, weights, rgb_pad, sem_pad, image_index)
+        out = self._composite(directions, samples, weights, [(rgb_pad, image_index, 1.0)], sem_pad)
         out["samples"] = mask.sum()
         out["shaded"] = significant.sum()
         return out
@@ -421,14 +432,10 @@ class SRFModel(nn.Module):
                                                           self.field.novel_view_appearances)) or [(None, 1.0)]
         for start in range(0, origins.shape[0], chunk):
             rays = min(chunk, origins.shape[0] - start)
-            out = None
-            for image, weight in nearest:
-                index = None if image is None else torch.full((rays,), image, dtype=torch.long, device=origins.device)
-                view = self(origins[start:start + chunk], directions[start:start + chunk], index)
-                if out is None:
-                    out = dict(view, rgb=view["rgb"].float() * weight)
-                else:  # the appearance moves the colour only: weights, depth and labels are the same
-                    out["rgb"] = out["rgb"] + view["rgb"].float() * weight
+            appearances = [(None if image is None else torch.full((rays,), image, dtype=torch.long,
+                                                                  device=origins.device), weight)
+                           for image, weight in nearest]
+            out = self(origins[start:start + chunk], directions[start:start + chunk], appearances=appearances)
             for key in outputs:
                 if key in out:  # the sample counts exist in eval mode only
                     outputs[key].append(out[key].float().cpu())
