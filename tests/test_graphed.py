@@ -163,3 +163,27 @@ def test_training_seconds_count_the_devices_work_not_only_its_queuing(scene, dev
     # clock is what is checked, so a step or two is enough.
     assert run.step >= 2 and 3.0 <= run.seconds <= wall
     assert run.seconds > 0.85 * wall, (run.seconds, wall, run.step)
+
+
+@pytest.mark.parametrize("training", [True, False])
+def test_occupancy_lookup_answers_alike_packed_and_static(device, training):
+    """The packed lookup lists each point at the one level it lies in; the static one looks up both
+    levels for every point. They answer the same for points in the box, in the shell and beyond it
+    (and, in evaluation, where no camera saw)."""
+    model = foggy_model(device)
+    grid = model.occupancy
+    g = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        grid.binary0.copy_(torch.rand(grid.binary0.shape, generator=g) < 0.3)
+        grid.binary1.copy_(torch.rand(grid.binary1.shape, generator=g) < 0.3)
+        grid.seen1.copy_(torch.rand(grid.seen1.shape, generator=g) < 0.7)
+    points = (torch.randn(20000, 3, generator=g) * torch.tensor([0.5, 3.0, 30.0])).to(device)
+    points[:8] = torch.tensor([[1.0, 0.0, 0.0], [-1.0, 1.0, 1.0], [0.0, 0.0, 1.0 + 1e-6], [1e6, 0.0, 0.0],
+                               [0.0, -1e6, 0.0], [0.0, 0.0, 0.0], [0.999, -0.999, 0.5], [2.0, 2.0, 2.0]])
+    grid.train(training)
+    packed = grid.occupied(points)
+    grid.static_shapes = True
+    static = grid.occupied(points)
+    grid.static_shapes = False
+    assert 0.1 < packed.float().mean() < 0.5  # both levels answer: neither all empty nor all full
+    assert torch.equal(packed, static)

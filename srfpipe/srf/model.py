@@ -16,7 +16,8 @@ import torch.nn as nn
 from srfpipe.memory import check_allocation
 from srfpipe.srf import rendering
 from srfpipe.srf.field import SemanticField, grid_resolution
-from srfpipe.srf.sampling import OccupancyGrid, RaySamples, SamplerSettings, box_extent, generate_intervals, pack
+from srfpipe.srf.sampling import (OccupancyGrid, RaySamples, SamplerSettings, box_extent, generate_intervals, pack,
+                                  scatter_rows)
 from srfpipe.srf.warp import build_warp, looks_one_way, perspective_fits, perspective_grid
 
 # A sample "carries weight" above FLOATER_WEIGHT (the fog criterion of the any-capture issue); it
@@ -276,10 +277,11 @@ class SRFModel(nn.Module):
         )
         keep = t_end > t_start
         candidates = keep.sum(dim=1)
-        rays, cols = keep.nonzero(as_tuple=True)
-        t_mid = 0.5 * (t_start[rays, cols] + t_end[rays, cols])
+        flat = keep.view(-1).nonzero().squeeze(1)
+        rays = torch.div(flat, keep.shape[1], rounding_mode="floor")
+        t_mid = 0.5 * (t_start.reshape(-1)[flat] + t_end.reshape(-1)[flat])
         points = origins[rays] + directions[rays] * t_mid[:, None]
-        keep[rays, cols] = self.occupancy.occupied(points)
+        keep.view(-1)[flat] = self.occupancy.occupied(points)
         samples = pack(t_start, t_end, keep)
         samples.candidates = candidates
         return samples
@@ -297,33 +299,31 @@ class SRFModel(nn.Module):
         samples = self.sample(origins, directions, jitter)
         mask = samples.mask
         n, k = mask.shape
-        rays = mask.nonzero(as_tuple=True)[0]
-        points = origins[rays] + directions[rays] * samples.t_mid[mask][:, None]
+        kept = mask.view(-1).nonzero().squeeze(1)  # the kept samples' slots, ray by ray
+        rays = torch.div(kept, k, rounding_mode="floor")
+        points = origins[rays] + directions[rays] * samples.t_mid.reshape(-1)[kept][:, None]
         if field.density_grid:
             sigma = field.sigma(points)
         else:
             sigma, h = field.density(points)
-        sigma_pad = torch.zeros(n, k, device=sigma.device).masked_scatter(mask, sigma.float())
+        sigma_pad = scatter_rows(kept, sigma.float(), n * k).view(n, k)
         weights = rendering.render_weights(sigma_pad, samples.delta)
         if field.density_grid:
             # colour and semantics only where a sample can matter: w_k > threshold (occluded
             # samples and near-empty space are skipped; their contribution is below the threshold)
-            significant = (weights.detach() > self.color_threshold) & mask
-            shade = significant[mask]
+            shade = (weights.detach() > self.color_threshold).view(-1)[kept]
+            shade_slots = kept[shade]
             shade_rays = rays[shade]
             shade_points = points[shade]
             h = field.latent(shade_points)
-            colour_mask = significant
         else:
-            shade_rays, colour_mask, shade_points = rays, mask, points
+            shade_rays, shade_slots, shade_points = rays, kept, points
         colours = []
         for index, weight in (appearances if appearances is not None else [(image_index, 1.0)]):
             rgb = field.color(h, directions, index, ray_index=shade_rays)
-            rgb_pad = torch.zeros(n, k, 3, device=rgb.device).masked_scatter(colour_mask.unsqueeze(-1), rgb.float())
-            colours.append((rgb_pad, index, weight))
+            colours.append((scatter_rows(shade_slots, rgb.float(), n * k).view(n, k, 3), index, weight))
         logits = field.semantics(h, shade_points)
-        c = logits.shape[-1]
-        sem_pad = torch.zeros(n, k, c, device=logits.device).masked_scatter(colour_mask.unsqueeze(-1), logits.float())
+        sem_pad = scatter_rows(shade_slots, logits.float(), n * k).view(n, k, logits.shape[-1])
         out = self._composite(directions, samples, weights, colours, sem_pad)
         out["samples"] = int(rays.numel())
         out["shaded"] = int(shade_rays.numel())

@@ -153,12 +153,30 @@ def generate_intervals(origins, directions, box_min, box_max, settings: SamplerS
 
 
 def pack(t_start, t_end, keep) -> RaySamples:
-    """Move kept intervals to the front of each ray (order preserved) and drop empty columns."""
+    """Move kept intervals to the front of each ray (order preserved) and drop empty columns.
+
+    Each kept interval's slot is its rank among its ray's kept ones (a running count), so the
+    intervals move by one scatter, not a sort of every candidate; padded slots hold zeros."""
+    n, k = keep.shape
     counts = keep.sum(dim=1)
     width = int(counts.max()) if counts.numel() else 0
-    order = torch.sort((~keep).to(torch.uint8), dim=1, stable=True).indices[:, :width]
+    kept = keep.reshape(-1).nonzero().squeeze(1)
+    rank = (keep.cumsum(dim=1) - 1).reshape(-1)[kept]
+    slot = torch.div(kept, k, rounding_mode="floor") * width + rank
     mask = torch.arange(width, device=keep.device)[None, :] < counts[:, None]
-    return RaySamples(t_start.gather(1, order), t_end.gather(1, order), mask)
+    return RaySamples(scatter_rows(slot, t_start.reshape(-1)[kept], n * width).view(n, width),
+                      scatter_rows(slot, t_end.reshape(-1)[kept], n * width).view(n, width), mask)
+
+
+def scatter_rows(rows, values, count: int):
+    """A tensor of `count` zero rows shaped like `values`' rows, holding `values` at `rows` (unique).
+
+    Indexed assignment, not `masked_scatter`: both directions of autograd then move only the given
+    rows (masked_scatter's backward, a masked_select over the whole padded tensor, cost several
+    times a training step's field evaluation on the CPU)."""
+    out = values.new_zeros((count,) + tuple(values.shape[1:]))
+    out[rows] = values
+    return out
 
 
 def view_depth(points, camera_to_scene, intrinsics, width: int, height: int) -> torch.Tensor:
@@ -268,9 +286,11 @@ class OccupancyGrid(nn.Module):
     def occupied(self, x: torch.Tensor) -> torch.Tensor:
         """Whether scene-frame points (M, 3) lie in occupied cells (outside the field: False)."""
         u = self._u(x)
+        if self.contraction and not self.static_shapes:
+            return self._occupied_packed(u)
         inside = (u.abs() <= 1.0).all(dim=-1)
         result = self.binary0[self._index0(u)] & inside  # binary0 holds seen0 already
-        if self.contraction and self.static_shapes:
+        if self.contraction:
             # both levels looked up for every point, no index of the outside ones: no shape
             # depends on the data (a CUDA graph replays it), at the cost of the shell lookups
             v = contract(u)
@@ -278,12 +298,25 @@ class OccupancyGrid(nn.Module):
             if not self.training:
                 outer = outer & self.seen1[self._index1(v, self.seen_resolution)]
             return torch.where(inside, result, outer)
-        if self.contraction:
-            outside = (~inside).nonzero().squeeze(1)  # contract only what lies outside the box
-            v = contract(u[outside])
-            result[outside] = self.binary1[self._index1(v)]
-            if not self.training:
-                result[outside] &= self.seen1[self._index1(v, self.seen_resolution)]
+        return result
+
+    def _occupied_packed(self, u: torch.Tensor) -> torch.Tensor:
+        """`occupied` for grid coordinates u (M, 3) with a shell: each point looked up at the one
+        level it lies in. Most of a batch's candidates lie in the shell (a ray crosses the box in
+        a few of its steps), so the L-inf norm that decides the level is also the contraction's."""
+        a = u.abs()
+        norm = torch.maximum(torch.maximum(a[:, 0], a[:, 1]), a[:, 2])
+        inside = norm <= 1.0
+        result = torch.empty(u.shape[0], dtype=torch.bool, device=u.device)
+        box = inside.nonzero().squeeze(1)
+        result[box] = self.binary0[self._index0(u[box])]  # binary0 holds seen0 already
+        shell = (~inside).nonzero().squeeze(1)
+        norm = norm[shell, None]
+        v = (2.0 - 1.0 / norm) * u[shell] / norm  # contract(u): the same arithmetic
+        outer = self.binary1[self._index1(v)]
+        if not self.training:
+            outer &= self.seen1[self._index1(v, self.seen_resolution)]
+        result[shell] = outer
         return result
 
     @torch.no_grad()
