@@ -302,17 +302,13 @@ class OccupancyGrid(nn.Module):
 
     def _occupied_packed(self, u: torch.Tensor) -> torch.Tensor:
         """`occupied` for grid coordinates u (M, 3) with a shell: each point looked up at the one
-        level it lies in. Most of a batch's candidates lie in the shell (a ray crosses the box in
-        a few of its steps), so the L-inf norm that decides the level is also the contraction's."""
-        a = u.abs()
-        norm = torch.maximum(torch.maximum(a[:, 0], a[:, 1]), a[:, 2])
-        inside = norm <= 1.0
+        level it lies in (the box's index is not computed for the shell's points, most of a batch)."""
+        inside = (u.abs() <= 1.0).all(dim=-1)
         result = torch.empty(u.shape[0], dtype=torch.bool, device=u.device)
         box = inside.nonzero().squeeze(1)
         result[box] = self.binary0[self._index0(u[box])]  # binary0 holds seen0 already
         shell = (~inside).nonzero().squeeze(1)
-        norm = norm[shell, None]
-        v = (2.0 - 1.0 / norm) * u[shell] / norm  # contract(u): the same arithmetic
+        v = contract(u[shell])
         outer = self.binary1[self._index1(v)]
         if not self.training:
             outer &= self.seen1[self._index1(v, self.seen_resolution)]
