@@ -147,3 +147,59 @@ def test_distortion_is_finite_for_empty_rays_and_huge_densities():
     assert torch.isfinite(loss).all() and loss[0] == 0.0
     empty = rendering.distortion(torch.zeros(2, 0), torch.zeros(2, 0), torch.zeros(2, 0))
     assert empty.tolist() == [0.0, 0.0]
+
+
+def _packed(values, counts):
+    """The samples of padded (R, K) values, ray after ray, `counts` (R,) of each ray kept."""
+    keep = torch.arange(values.shape[1])[None, :] < counts[:, None]
+    return values[keep], rendering.Segments.of(keep.nonzero()[:, 0], values.shape[0])
+
+
+@pytest.mark.parametrize("sigma_scale", [1.0, 1e6])
+def test_packed_samples_render_and_differentiate_like_padded_ones(sigma_scale):
+    """Training renders the samples packed ray after ray; the padded layout (what a CUDA graph
+    replays) must give the same colours, depth, opacity, distortion and gradients, rays without
+    samples included."""
+    generator = torch.Generator().manual_seed(0)
+    counts = torch.tensor([5, 0, 1, 8, 3, 0])
+    k = int(counts.max())
+    keep = torch.arange(k)[None, :] < counts[:, None]
+    sigma = (torch.rand(6, k, generator=generator) * sigma_scale).requires_grad_()
+    delta = torch.rand(6, k, generator=generator) * 0.3 * keep
+    t_start = torch.cumsum(delta, dim=1) - delta + 1.0
+    colours = torch.rand(6, k, 3, generator=generator, requires_grad=True)
+
+    def render(sigma, delta, t_start, colours, segments):
+        w = rendering.render_weights(sigma, delta, segments)
+        t_end = t_start + delta
+        return (rendering.accumulate(w, colours, segments), rendering.accumulation(w, segments),
+                rendering.expected_depth(w, 0.5 * (t_start + t_end), segments=segments),
+                rendering.distortion(w, t_start / (t_start + 2), t_end / (t_end + 2), segments))
+
+    padded = render(sigma, delta, t_start, colours, None)
+    flat = [_packed(v, counts)[0] for v in (sigma, delta, t_start)]
+    flat_colours = colours[keep]
+    segments = rendering.Segments.of(keep.nonzero()[:, 0], 6)
+    packed = render(*flat, flat_colours, segments)
+    for a, b in zip(padded, packed):
+        torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-6)
+    assert torch.equal(packed[1][counts == 0], torch.zeros(2))  # no samples: nothing gathered
+    grads = torch.autograd.grad(sum(x.sum() for x in padded), (sigma, colours))
+    flat_grads = torch.autograd.grad(sum(x.sum() for x in packed), (sigma, colours))
+    for flat_grad, grad in zip(flat_grads, grads):  # the padding's gradient is 0 in both
+        torch.testing.assert_close(flat_grad, grad, rtol=1e-5, atol=1e-6)
+    assert torch.equal(segments.pad(flat[0]), (sigma * keep).detach())
+
+
+def test_packed_transmittance_of_a_ray_after_an_opaque_one_is_exact():
+    """Packed, each ray's transmittance is a running sum over the whole batch less its value at
+    the ray's start: after a ray of optical thickness 800 000, the next ray's small terms
+    (1e-3 each) must not be rounded away (in float32 they would be: its ulp there is 0.06)."""
+    counts = torch.tensor([10_000, 100])
+    tau = torch.cat([torch.full((10_000,), 80.0), torch.full((100,), 1e-3)])
+    segments = rendering.Segments.of(torch.repeat_interleave(torch.arange(2), counts), 2)
+    weights = rendering.render_weights(tau, torch.ones_like(tau), segments)
+    expected = math.exp(-1e-3) ** torch.arange(100, dtype=torch.float64) * -math.expm1(-1e-3)
+    torch.testing.assert_close(weights[10_000:].double(), expected, rtol=1e-6, atol=0.0)
+    assert float(weights[0]) == 1.0 and float(weights[1:10_000].max()) < 1e-30
+    assert torch.isfinite(rendering.distortion(weights, torch.rand(10_100), torch.rand(10_100), segments)).all()

@@ -16,8 +16,8 @@ import torch.nn as nn
 from srfpipe.memory import check_allocation
 from srfpipe.srf import rendering
 from srfpipe.srf.field import SemanticField, grid_resolution
-from srfpipe.srf.sampling import (OccupancyGrid, RaySamples, SamplerSettings, box_extent, generate_intervals, pack,
-                                  scatter_rows)
+from srfpipe.srf.sampling import (OccupancyGrid, PackedSamples, RaySamples, SamplerSettings, box_extent,
+                                  generate_intervals)
 from srfpipe.srf.warp import build_warp, looks_one_way, perspective_fits, perspective_grid
 
 # A sample "carries weight" above FLOATER_WEIGHT (the fog criterion of the any-capture issue); it
@@ -30,7 +30,7 @@ FLOATER_CELLS = 4.0
 # an evaluation chunk). The default step (one cell) gives at most 256 * sqrt(3) = 444.
 MAX_STEPS_ACROSS_BOX = 2048
 # Bytes one candidate interval of a ray costs while a training batch is sampled and culled
-# (t_start and t_end, the keep mask, the culling points and indices, the sort and gather of pack):
+# (t_start and t_end, the keep mask, the culling points and indices, the kept samples' gather):
 # an upper estimate for the check before a step's batch is allocated
 CANDIDATE_BYTES = 64
 # Initial opacity per step of the density grid when the bounds are trusted (config, ground truth);
@@ -270,21 +270,19 @@ class SRFModel(nn.Module):
         self.field.static_shapes = static
         self.occupancy.static_shapes = static
 
-    def sample(self, origins, directions, jitter=None):
-        """Candidate intervals culled by the occupancy grid, packed (see sampling.pack)."""
+    def sample(self, origins, directions, jitter=None) -> PackedSamples:
+        """Candidate intervals culled by the occupancy grid, packed ray after ray."""
         t_start, t_end = generate_intervals(
             origins, directions, self.field.box_min, self.field.box_max, self.settings, jitter, self.extent
         )
         keep = t_end > t_start
-        candidates = keep.sum(dim=1)
         flat = keep.view(-1).nonzero().squeeze(1)
         rays = torch.div(flat, keep.shape[1], rounding_mode="floor")
-        t_mid = 0.5 * (t_start.reshape(-1)[flat] + t_end.reshape(-1)[flat])
-        points = origins[rays] + directions[rays] * t_mid[:, None]
-        keep.view(-1)[flat] = self.occupancy.occupied(points)
-        samples = pack(t_start, t_end, keep)
-        samples.candidates = candidates
-        return samples
+        t_start, t_end = t_start.reshape(-1)[flat], t_end.reshape(-1)[flat]
+        points = origins[rays] + directions[rays] * (0.5 * (t_start + t_end))[:, None]
+        occupied = self.occupancy.occupied(points).nonzero().squeeze(1)
+        return PackedSamples(t_start[occupied], t_end[occupied], points[occupied],
+                             rendering.Segments.of(rays[occupied], keep.shape[0]), keep.sum(dim=1))
 
     def forward(self, origins, directions, image_index=None, jitter=None, appearances=None) -> dict:
         """Render rays (R, 3) in the scene frame. Returns rgb (R, 3), logits (R, C), depth (R,)
@@ -297,69 +295,65 @@ class SRFModel(nn.Module):
             return self._forward_static(origins, directions, image_index, jitter)
         field = self.field
         samples = self.sample(origins, directions, jitter)
-        mask = samples.mask
-        n, k = mask.shape
-        kept = mask.view(-1).nonzero().squeeze(1)  # the kept samples' slots, ray by ray
-        rays = torch.div(kept, k, rounding_mode="floor")
-        points = origins[rays] + directions[rays] * samples.t_mid.reshape(-1)[kept][:, None]
+        segments = samples.segments
         if field.density_grid:
-            sigma = field.sigma(points)
+            sigma = field.sigma(samples.points)
         else:
-            sigma, h = field.density(points)
-        sigma_pad = scatter_rows(kept, sigma.float(), n * k).view(n, k)
-        weights = rendering.render_weights(sigma_pad, samples.delta)
+            sigma, h = field.density(samples.points)
+        weights = rendering.render_weights(sigma, samples.delta, segments)
         if field.density_grid:
             # colour and semantics only where a sample can matter: w_k > threshold (occluded
             # samples and near-empty space are skipped; their contribution is below the threshold)
-            shade = (weights.detach() > self.color_threshold).view(-1)[kept]
-            shade_slots = kept[shade]
-            shade_rays = rays[shade]
-            shade_points = points[shade]
-            h = field.latent(shade_points)
+            shade = (weights.detach() > self.color_threshold).nonzero().squeeze(1)
+            shaded = segments.subset(shade)
+            h = field.latent(samples.points[shade])
+            shade_weights, shade_points = weights[shade], samples.points[shade]
         else:
-            shade_rays, shade_slots, shade_points = rays, kept, points
-        colours = []
-        for index, weight in (appearances if appearances is not None else [(image_index, 1.0)]):
-            rgb = field.color(h, directions, index, ray_index=shade_rays)
-            colours.append((scatter_rows(shade_slots, rgb.float(), n * k).view(n, k, 3), index, weight))
+            shaded, shade_weights, shade_points = segments, weights, samples.points
+        colours = [(field.color(h, directions, index, ray_index=shaded.ray), index, weight)
+                   for index, weight in (appearances if appearances is not None else [(image_index, 1.0)])]
         logits = field.semantics(h, shade_points)
-        sem_pad = scatter_rows(shade_slots, logits.float(), n * k).view(n, k, logits.shape[-1])
-        out = self._composite(directions, samples, weights, colours, sem_pad)
-        out["samples"] = int(rays.numel())
-        out["shaded"] = int(shade_rays.numel())
+        out = self._composite(directions, samples.t_start, samples.t_end, weights, segments,
+                              shade_weights, shaded, colours, logits)
+        out["samples"] = int(segments.ray.numel())
+        out["shaded"] = int(shaded.ray.numel())
         if not self.training:
-            tolerance = FLOATER_CELLS * self.config["detail_scene"] + samples.delta
+            # the floater count needs each ray's samples in order: the padded layout
+            t_mid = segments.pad(0.5 * (samples.t_start + samples.t_end))
+            tolerance = FLOATER_CELLS * self.config["detail_scene"] + segments.pad(samples.delta)
             out["significant"], out["floaters"] = rendering.floater_counts(
-                weights, samples.t_mid, tolerance, FLOATER_WEIGHT)
+                segments.pad(weights), t_mid, tolerance, FLOATER_WEIGHT)
             # empty space skipped: the intervals the sampler placed on each ray, and those the
             # occupancy grid kept (the field is evaluated at these only)
             out["candidate_samples"] = samples.candidates.float()
-            out["kept_samples"] = mask.sum(dim=-1).float()
+            out["kept_samples"] = segments.counts().float()
         return out
 
-    def _composite(self, directions, samples: RaySamples, weights, colours: list, sem_pad) -> dict:
-        """Eq. 1 and Eq. 3 over the padded samples: rgb, logits, depth, accumulation (and in
-        training the distortion loss). `colours`: (rgb_pad, image_index, weight) per appearance;
+    def _composite(self, directions, t_start, t_end, weights, segments, shade_weights, shaded, colours: list,
+                   logits) -> dict:
+        """Eq. 1 and Eq. 3: rgb, logits, depth, accumulation (and in training the distortion loss).
+        The samples (t_start, t_end, weights) are padded (segments None) or packed along
+        `segments`; colours and logits are given at the shaded samples (`shade_weights` along
+        `shaded`; padded, all of them). `colours`: (rgb, image_index, weight) per appearance;
         Eq. 1 is linear in the samples' colours, so the blend of the rendered colours is the
         render of the blended ones."""
         field = self.field
-        n, c = weights.shape[0], sem_pad.shape[-1]
-        acc = rendering.accumulation(weights)
+        n, c = directions.shape[0], logits.shape[-1]
+        acc = rendering.accumulation(weights, segments)
         background = field.background(directions)
         rendered = [(field.image_colour(rendering.composite_background(
-            rendering.accumulate(weights, rgb_pad), acc, background), image_index), weight)
-            for rgb_pad, image_index, weight in colours]
+            rendering.accumulate(shade_weights, rgb, shaded), acc, background), image_index), weight)
+            for rgb, image_index, weight in colours]
         color = rendered[0][0] if len(rendered) == 1 else sum(rgb * weight for rgb, weight in rendered)
         # Eq. 3 with detached weights: the semantic loss reaches only F_s (and background logits)
-        sem_weights = weights.detach()
         sem_logits = rendering.composite_background(
-            rendering.accumulate(sem_weights, sem_pad), sem_weights.sum(-1),
+            rendering.accumulate(shade_weights.detach(), logits, shaded), acc.detach(),
             field.background_logits.expand(n, c),
         )
         out = {
             "rgb": color,
             "logits": sem_logits,
-            "depth": rendering.expected_depth(weights, samples.t_mid),
+            "depth": rendering.expected_depth(weights, 0.5 * (t_start + t_end), segments=segments),
             "accumulation": acc,
         }
         if self.training:
@@ -367,7 +361,7 @@ class SRFModel(nn.Module):
             # box, bounded in the contracted shell, so far samples cannot dominate the loss
             d = float(max(b - a for a, b in zip(self.config["box_min"], self.config["box_max"])))
             out["distortion"] = rendering.distortion(
-                weights, samples.t_start / (samples.t_start + d), samples.t_end / (samples.t_end + d)).mean()
+                weights, t_start / (t_start + d), t_end / (t_end + d), segments).mean()
         return out
 
     def _forward_static(self, origins, directions, image_index, jitter) -> dict:
@@ -408,7 +402,8 @@ class SRFModel(nn.Module):
         c = logits.shape[-1]
         rgb_pad = torch.zeros(end + 1, 3, device=rgb.device).index_copy(0, index, rgb.float())[:end].view(n, k, 3)
         sem_pad = torch.zeros(end + 1, c, device=rgb.device).index_copy(0, index, logits.float())[:end].view(n, k, c)
-        out = self._composite(directions, samples, weights, [(rgb_pad, image_index, 1.0)], sem_pad)
+        out = self._composite(directions, t_start, t_end, weights, None, weights, None,
+                              [(rgb_pad, image_index, 1.0)], sem_pad)
         out["samples"] = mask.sum()
         out["shaded"] = significant.sum()
         return out

@@ -1,8 +1,15 @@
 """Volumetric rendering along rays: the paper's Eq. 1 (colour) and Eq. 3 (semantic logits).
 
-Samples are stored padded, (R, K): R rays with up to K intervals each; a padded slot has
-delta = 0 (and so contributes nothing). Everything here is a small pure function, computed in
-float32 whatever autocast says, because transmittance is a product of many terms.
+Samples come in one of two layouts, and every function here takes either:
+
+* padded, (R, K): R rays with up to K intervals each; a padded slot has delta = 0 (and so
+  contributes nothing). The static shapes a CUDA graph replays need this;
+* packed, (M,): the M samples of R rays stored flat, ray after ray, with `Segments` saying which
+  ray each belongs to. Nothing is computed for padding: a training ray through empty space keeps
+  a few of its samples, and padding them to the batch's longest ray multiplied the work.
+
+Everything is computed in float32 whatever autocast says, because transmittance is a product of
+many terms.
 
     weights_k = T_k * alpha(sigma_k * delta_k),   T_k = exp(-sum_{a<k} sigma_a delta_a),
     alpha(x) = 1 - exp(-x)
@@ -15,6 +22,8 @@ float32 whatever autocast says, because transmittance is a product of many terms
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
 # Optical thickness at which a sample is already fully opaque in float32 (exp(-80) ~ 1e-35):
@@ -22,41 +31,87 @@ import torch
 MAX_OPTICAL_THICKNESS = 80.0
 
 
+@dataclass(frozen=True)
+class Segments:
+    """The rays of packed samples (M,), stored ray after ray: `ray` (M,) each sample's ray,
+    `rays` R; `first` (M,) the index of the first sample of each sample's ray (needed by the
+    sums along a ray, `exclusive_cumsum`, and only there)."""
+
+    ray: torch.Tensor
+    rays: int
+    first: torch.Tensor | None = None
+
+    @classmethod
+    def of(cls, ray: torch.Tensor, rays: int) -> "Segments":
+        """Segments of samples whose rays `ray` (M,) are sorted."""
+        counts = torch.bincount(ray, minlength=rays)
+        return cls(ray, rays, (torch.cumsum(counts, 0) - counts)[ray])
+
+    def subset(self, index: torch.Tensor) -> "Segments":
+        """The rays of some of the samples (sums only: their `first` would index the others)."""
+        return Segments(self.ray[index], self.rays)
+
+    def counts(self) -> torch.Tensor:
+        """Samples per ray (R,)."""
+        return torch.bincount(self.ray, minlength=self.rays)
+
+    def sum(self, values: torch.Tensor) -> torch.Tensor:
+        """Per ray, the sum of its samples' values (M, ...) -> (R, ...); 0 for a ray without any."""
+        return values.new_zeros((self.rays,) + tuple(values.shape[1:])).index_add(0, self.ray, values)
+
+    def pad(self, values: torch.Tensor) -> torch.Tensor:
+        """The padded layout (R, K) of values (M,), K the longest ray; zeros in the padding."""
+        counts = self.counts()
+        width = int(counts.max()) if counts.numel() else 0
+        slot = self.ray * width + torch.arange(self.ray.numel(), device=self.ray.device) - self.first
+        out = values.new_zeros(self.rays * width)
+        out[slot] = values
+        return out.view(self.rays, width)
+
+
 def optical_thickness(sigma: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
-    """tau_k = sigma_k * delta_k (R, K), in float32, clamped to [0, MAX_OPTICAL_THICKNESS]."""
+    """tau_k = sigma_k * delta_k, in float32, clamped to [0, MAX_OPTICAL_THICKNESS]."""
     tau = sigma.float() * delta.float()
     return tau.clamp(0.0, MAX_OPTICAL_THICKNESS)
 
 
-def transmittance(tau: torch.Tensor) -> torch.Tensor:
+def transmittance(tau: torch.Tensor, segments: Segments | None = None) -> torch.Tensor:
     """T_k = exp(-sum_{a<k} tau_a): an *exclusive* cumulative sum, never cumsum(tau) - tau.
 
     Subtracting would cancel catastrophically once the sum is huge; shifting keeps it exact.
     """
-    return torch.exp(-exclusive_cumsum(tau))
+    return torch.exp(-exclusive_cumsum(tau, segments))
 
 
-def render_weights(sigma: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
-    """Eq. 1 weights w_k = T_k alpha(sigma_k delta_k) for samples (…, K); sum_k w_k <= 1."""
+def render_weights(sigma: torch.Tensor, delta: torch.Tensor, segments: Segments | None = None) -> torch.Tensor:
+    """Eq. 1 weights w_k = T_k alpha(sigma_k delta_k) for samples (…, K) or packed (M,); sum_k w_k <= 1."""
     tau = optical_thickness(sigma, delta)
     alpha = -torch.expm1(-tau)  # 1 - exp(-x), exact for tiny x
-    return transmittance(tau) * alpha
+    return transmittance(tau, segments) * alpha
 
 
-def accumulate(weights: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
-    """sum_k w_k v_k: weights (…, K), values (…, K, D) -> (…, D). Used for rgb (Eq. 1) and logits (Eq. 3)."""
-    return torch.sum(weights.unsqueeze(-1) * values.float(), dim=-2)
+def ray_sum(values: torch.Tensor, segments: Segments | None = None) -> torch.Tensor:
+    """sum_k v_k along each ray: values (…, K) -> (…,), or packed (M,) -> (R,)."""
+    return values.sum(dim=-1) if segments is None else segments.sum(values)
 
 
-def accumulation(weights: torch.Tensor) -> torch.Tensor:
-    """Opacity of each ray, sum_k w_k = 1 - T_{K+1} (…,)."""
-    return weights.sum(dim=-1)
+def accumulate(weights: torch.Tensor, values: torch.Tensor, segments: Segments | None = None) -> torch.Tensor:
+    """sum_k w_k v_k: weights (…, K), values (…, K, D) -> (…, D), or packed (M,), (M, D) -> (R, D).
+    Used for rgb (Eq. 1) and logits (Eq. 3)."""
+    weighted = weights.unsqueeze(-1) * values.float()
+    return weighted.sum(dim=-2) if segments is None else segments.sum(weighted)
 
 
-def expected_depth(weights: torch.Tensor, t_mid: torch.Tensor, eps: float = 1e-10) -> torch.Tensor:
-    """Depth along the ray, sum_k w_k t_k / sum_k w_k (…,); 0 for a ray that hits nothing."""
-    acc = accumulation(weights)
-    return torch.sum(weights * t_mid.float(), dim=-1) / (acc + eps)
+def accumulation(weights: torch.Tensor, segments: Segments | None = None) -> torch.Tensor:
+    """Opacity of each ray, sum_k w_k = 1 - T_{K+1} (…,) or (R,)."""
+    return ray_sum(weights, segments)
+
+
+def expected_depth(weights: torch.Tensor, t_mid: torch.Tensor, eps: float = 1e-10,
+                   segments: Segments | None = None) -> torch.Tensor:
+    """Depth along the ray, sum_k w_k t_k / sum_k w_k (…,) or (R,); 0 for a ray that hits nothing."""
+    acc = accumulation(weights, segments)
+    return ray_sum(weights * t_mid.float(), segments) / (acc + eps)
 
 
 def composite_background(value: torch.Tensor, acc: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
@@ -73,14 +128,24 @@ def median_depth(weights: torch.Tensor, t_mid: torch.Tensor) -> torch.Tensor:
     return t_mid.float().gather(-1, index).squeeze(-1)
 
 
-def exclusive_cumsum(values: torch.Tensor) -> torch.Tensor:
-    """sum_{a<k} v_a along the last axis (shifted, not cumsum - v, for the reason in `transmittance`)."""
-    zeros = torch.zeros_like(values[..., :1])
-    return torch.cat([zeros, torch.cumsum(values, dim=-1)], dim=-1)[..., :values.shape[-1]]
+def exclusive_cumsum(values: torch.Tensor, segments: Segments | None = None) -> torch.Tensor:
+    """sum_{a<k} v_a along each ray (shifted, not cumsum - v, for the reason in `transmittance`).
+
+    Packed, it is one running sum over all the rays, less its value at each ray's first sample.
+    The running sum is kept in float64: in float32 a long ray's total (thousands) would round
+    away the next ray's small terms; float64's rounding at any batch's total stays below 1e-8."""
+    if segments is None:
+        zeros = torch.zeros_like(values[..., :1])
+        return torch.cat([zeros, torch.cumsum(values, dim=-1)], dim=-1)[..., :values.shape[-1]]
+    wide = values.double()
+    running = torch.cat([wide.new_zeros(1), torch.cumsum(wide, dim=0)])[:-1]
+    return (running - running[segments.first]).to(values.dtype)
 
 
-def distortion(weights: torch.Tensor, s_start: torch.Tensor, s_end: torch.Tensor) -> torch.Tensor:
-    """Mip-NeRF 360's distortion loss per ray (…,), for intervals [s_k, s_k+1) in a normalized distance:
+def distortion(weights: torch.Tensor, s_start: torch.Tensor, s_end: torch.Tensor,
+               segments: Segments | None = None) -> torch.Tensor:
+    """Mip-NeRF 360's distortion loss per ray (…,) or (R,), for intervals [s_k, s_k+1) in a
+    normalized distance:
 
         L_dist = sum_{i,j} w_i w_j |m_i - m_j| + 1/3 sum_i w_i^2 (s_i+1 - s_i),   m = midpoints.
 
@@ -92,8 +157,9 @@ def distortion(weights: torch.Tensor, s_start: torch.Tensor, s_end: torch.Tensor
     w = weights.float()
     mid = 0.5 * (s_start.float() + s_end.float())
     length = (s_end.float() - s_start.float()).clamp(min=0.0)
-    between = 2.0 * torch.sum(w * (mid * exclusive_cumsum(w) - exclusive_cumsum(w * mid)), dim=-1)
-    within = torch.sum(w.square() * length, dim=-1) / 3.0
+    before = mid * exclusive_cumsum(w, segments) - exclusive_cumsum(w * mid, segments)
+    between = 2.0 * ray_sum(w * before, segments)
+    within = ray_sum(w.square() * length, segments) / 3.0
     return between + within
 
 

@@ -11,8 +11,9 @@ Intervals along a ray come from up to three segments (scene-frame distances t):
 
 Segments are covered completely (no gaps), so dropping an interval is exactly sigma = 0 there.
 Training jitters every ray by one random fraction of a step (stratified sampling).
-Intervals in unoccupied cells are then dropped and the rest packed to the front: (R, K') padded
-with `mask`, which is what `srfpipe.srf.rendering` consumes.
+Intervals in unoccupied cells are then dropped and the rest stored flat, ray after ray
+(`PackedSamples`), as `srfpipe.srf.rendering` consumes them; a training step of fixed shapes (CUDA
+graphs) keeps them padded instead (`RaySamples`), the culled ones with sigma = 0.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import torch.nn as nn
 
 from srfpipe.device import rand, randint
 from srfpipe.srf.field import contract, grid_coordinates, grid_points, uncontract
+from srfpipe.srf.rendering import Segments
 from srfpipe.srf.warp import PerspectiveWarp
 
 
@@ -35,7 +37,6 @@ class RaySamples:
     t_start: torch.Tensor
     t_end: torch.Tensor
     mask: torch.Tensor
-    candidates: torch.Tensor | None = None  # (R,) intervals per ray before occupancy culling
 
     @property
     def t_mid(self) -> torch.Tensor:
@@ -44,6 +45,23 @@ class RaySamples:
     @property
     def delta(self) -> torch.Tensor:
         return torch.where(self.mask, self.t_end - self.t_start, torch.zeros_like(self.t_start))
+
+
+@dataclass
+class PackedSamples:
+    """The intervals the occupancy grid kept, stored flat ray after ray (rendering.Segments):
+    t_start, t_end (M,), their midpoints `points` (M, 3), and the intervals each ray had before
+    the culling, `candidates` (R,)."""
+
+    t_start: torch.Tensor
+    t_end: torch.Tensor
+    points: torch.Tensor
+    segments: "Segments"
+    candidates: torch.Tensor
+
+    @property
+    def delta(self) -> torch.Tensor:
+        return self.t_end - self.t_start
 
 
 def ray_aabb(origins, directions, box_min, box_max):
@@ -150,33 +168,6 @@ def generate_intervals(origins, directions, box_min, box_max, settings: SamplerS
     t_start = torch.cat([p[0] for p in parts], dim=1)
     t_end = torch.cat([p[1] for p in parts], dim=1)
     return t_start, t_end
-
-
-def pack(t_start, t_end, keep) -> RaySamples:
-    """Move kept intervals to the front of each ray (order preserved) and drop empty columns.
-
-    Each kept interval's slot is its rank among its ray's kept ones (a running count), so the
-    intervals move by one scatter, not a sort of every candidate; padded slots hold zeros."""
-    n, k = keep.shape
-    counts = keep.sum(dim=1)
-    width = int(counts.max()) if counts.numel() else 0
-    kept = keep.reshape(-1).nonzero().squeeze(1)
-    rank = (keep.cumsum(dim=1) - 1).reshape(-1)[kept]
-    slot = torch.div(kept, k, rounding_mode="floor") * width + rank
-    mask = torch.arange(width, device=keep.device)[None, :] < counts[:, None]
-    return RaySamples(scatter_rows(slot, t_start.reshape(-1)[kept], n * width).view(n, width),
-                      scatter_rows(slot, t_end.reshape(-1)[kept], n * width).view(n, width), mask)
-
-
-def scatter_rows(rows, values, count: int):
-    """A tensor of `count` zero rows shaped like `values`' rows, holding `values` at `rows` (unique).
-
-    Indexed assignment, not `masked_scatter`: both directions of autograd then move only the given
-    rows (masked_scatter's backward, a masked_select over the whole padded tensor, cost several
-    times a training step's field evaluation on the CPU)."""
-    out = values.new_zeros((count,) + tuple(values.shape[1:]))
-    out[rows] = values
-    return out
 
 
 def view_depth(points, camera_to_scene, intrinsics, width: int, height: int) -> torch.Tensor:
