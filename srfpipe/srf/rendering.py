@@ -9,7 +9,7 @@ Samples come in one of two layouts, and every function here takes either:
   a few of its samples, and padding them to the batch's longest ray multiplied the work.
 
 Everything is computed in float32 whatever autocast says, because transmittance is a product of
-many terms.
+many terms (the packed layout's running sum along all its rays in float64: `exclusive_cumsum`).
 
     weights_k = T_k * alpha(sigma_k * delta_k),   T_k = exp(-sum_{a<k} sigma_a delta_a),
     alpha(x) = 1 - exp(-x)
