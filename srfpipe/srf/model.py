@@ -305,9 +305,8 @@ class SRFModel(nn.Module):
             # colour and semantics only where a sample can matter: w_k > threshold (occluded
             # samples and near-empty space are skipped; their contribution is below the threshold)
             shade = (weights.detach() > self.color_threshold).nonzero().squeeze(1)
-            shaded = segments.subset(shade)
-            h = field.latent(samples.points[shade])
-            shade_weights, shade_points = weights[shade], samples.points[shade]
+            shaded, shade_weights, shade_points = segments.subset(shade), weights[shade], samples.points[shade]
+            h = field.latent(shade_points)
         else:
             shaded, shade_weights, shade_points = segments, weights, samples.points
         colours = [(field.color(h, directions, index, ray_index=shaded.ray), index, weight)
