@@ -39,10 +39,6 @@ class RaySamples:
     mask: torch.Tensor
 
     @property
-    def t_mid(self) -> torch.Tensor:
-        return 0.5 * (self.t_start + self.t_end)
-
-    @property
     def delta(self) -> torch.Tensor:
         return torch.where(self.mask, self.t_end - self.t_start, torch.zeros_like(self.t_start))
 
@@ -56,7 +52,7 @@ class PackedSamples:
     t_start: torch.Tensor
     t_end: torch.Tensor
     points: torch.Tensor
-    segments: "Segments"
+    segments: Segments
     candidates: torch.Tensor
 
     @property
