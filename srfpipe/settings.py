@@ -264,7 +264,8 @@ class LabelsSettings(SettingsSection):
 
     bounds: str = 'auto'
     """the model's bounds every later stage uses. masks = the box of the visual hull of the labelled
-    pixels (the frusta carved by the masks)"""
+    pixels (the frusta carved by the masks; on an empty background, by each frame's silhouette
+    against the backdrop as well, so masks of some parts ..."""
     background: str = 'auto'
     """what the pixels that no mask marks show. scene = anything (a table, a room, the ground: masks
     name only the prompted objects), so the geometry comes from the cameras and the sparse points

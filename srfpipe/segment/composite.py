@@ -262,7 +262,7 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
         background = resolve_background(frames, hull_mask, settings.background, bool(classes), labelled)
         update_attrs(group, **background)
         carving, carve_mask = labelled, hull_mask
-        if background["background"] == "empty" and classes and not labelled.all():
+        if background["background"] == "empty" and classes:
             backdrop = ((background["background_spread"], background["backdrop_colour"])
                         if background.get("backdrop_colour") is not None  # measured by labels.background auto
                         else backdrop_statistics(frames, hull_mask, labelled))
@@ -270,11 +270,12 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
                 spread, colour = backdrop
                 level = backdrop_level(spread)
                 carving, carve_mask = None, silhouette_hull_mask(frames, hull_mask, labelled, colour, level)
-                log.info("the %d frames without masks carve the hull by their silhouettes against the empty "
-                         "backdrop (colour %s, more than %.0f levels away)", int((~labelled).sum()),
-                         np.round(colour).astype(int).tolist(), level)
-                update_attrs(group, hull_silhouettes={"frames": int((~labelled).sum()), "backdrop_colour": colour,
-                                                      "level": level})
+                log.info("every frame carves the hull by its silhouette against the empty backdrop (colour %s, "
+                         "more than %.0f levels away) and its masks: masks of some parts leave the rest of the "
+                         "object (%d of %d frames without masks)", np.round(colour).astype(int).tolist(), level,
+                         int((~labelled).sum()), n)
+                update_attrs(group, hull_silhouettes={"frames": n, "frames_without_masks": int((~labelled).sum()),
+                                                      "backdrop_colour": colour, "level": level})
         update_attrs(group, **scene_bounds(frames, carve_mask, settings.bounds, bool(classes),
                                            background["background"], carving))
         update_attrs(group, classes=classes, class_values=dict(zip(classes, values)), names=names,
@@ -327,27 +328,30 @@ def backdrop_statistics(frames: Frames, hull_mask, labelled: np.ndarray | None) 
     return float(np.percentile(np.abs(pixels - median).max(axis=1), 90)), median.tolist()
 
 
-# A frame without masks on an empty backdrop still shows where matter is: every pixel that is not
-# backdrop. Such a pixel differs from the backdrop's median colour by more than this many times the
+# A frame on an empty backdrop shows where matter is, whatever its masks cover: every pixel that is
+# not backdrop. Such a pixel differs from the backdrop's median colour by more than this many times the
 # backdrop's spread (and at least EMPTY_BACKGROUND_SPREAD levels) in some channel.
 SILHOUETTE_SPREADS = 3
 
 
 def silhouette_hull_mask(frames: Frames, hull_mask, labelled: np.ndarray, colour, level: float):
-    """`hull_mask` for the labelled frames; for the others, the pixels farther than `level` (8-bit
-    levels, in some channel) from the backdrop's `colour`.
+    """Frame i's pixels that show matter on an empty backdrop: those farther than `level` (8-bit
+    levels, in some channel) from the backdrop's `colour`, and those its masks mark (`hull_mask`,
+    labelled frames).
 
-    With masks on a few frames only, those few carve the hull alone, and two or three views leave a
-    cone of space behind the object that agrees with every mask (on the built-in plant, 2 views
-    give a box 71x the object's). On an empty backdrop every frame's silhouette carves as well.
+    The masks cover the prompted parts only: the berries' masks of a plant leave its stem and
+    leaves, whose hull would then be a box round the berries (issue 30: a thin plant's masks of
+    its organs, 0.1 % of each image, carved its stem away). The silhouette shows all of it; the
+    masks add what is too dark to stand out. With masks on a few frames only, the silhouettes of
+    the others carve as well: two or three views leave a cone of space behind the object that
+    agrees with every mask (on the built-in plant, 2 views give a box 71x the object's).
     """
     colour = np.asarray(colour, dtype=np.int16)
 
     def mask(index: int) -> np.ndarray:
-        if labelled[index]:
-            return hull_mask(index)
         image = np.asarray(frames.group["images"][index]).astype(np.int16)
-        return np.abs(image - colour).max(axis=-1) > level
+        shows = np.abs(image - colour).max(axis=-1) > level
+        return shows | hull_mask(index) if labelled[index] else shows
 
     return mask
 
@@ -398,8 +402,8 @@ def scene_bounds(frames: Frames, hull_mask, policy: str, has_classes: bool, back
     the masks carve one and the poses' bounds were estimated, else the model's box. It bounds the
     occupancy cache and the simulator, so that modelling a whole room does not grow them. Only
     the `labelled` frames (those with masks; default all) carve; `hull_mask(i)` gives frame i's
-    pixels that mark the hull (on an empty backdrop, a frame without masks marks it by its
-    silhouette: silhouette_hull_mask).
+    pixels that mark the hull (on an empty backdrop, every frame marks it by its silhouette as
+    well: silhouette_hull_mask).
     """
     from srfpipe.artifacts import meta
     from srfpipe.segment.hull import bounds_from_masks
@@ -428,7 +432,7 @@ def scene_bounds(frames: Frames, hull_mask, policy: str, has_classes: bool, back
                  "which the model keeps: the background is not empty)",
                  np.round(box, 4).tolist(), record["volume_vs_poses_bounds"], poses_source)
         return kept
-    log.info("bounds from the masks' visual hull: %s (%.3g of the volume of the %s bounds)",
+    log.info("bounds from the visual hull: %s (%.3g of the volume of the %s bounds)",
              np.round(box, 4).tolist(), record["volume_vs_poses_bounds"], poses_source)
     return {**kept, "bounds_world": box, "bounds_source": "mask_hull"}
 
