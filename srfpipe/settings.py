@@ -274,6 +274,10 @@ class LabelsSettings(SettingsSection):
     """keep a class that no frame contains (by default it is reported and left out of the heads)"""
     min_pixels: int = 0
     """a class with at most this many pixels over all frames counts as empty"""
+    rescale_soft_masks: bool = True
+    """read each class's masks on their own scale: a class whose masks peak at h < 1 over all frames
+    (soft masks: a blurred thin part, a segmenter never sure of a small object) has its
+    probabilities divided by h before the threshold and the ..."""
     colors: dict[str, Any] = field(default_factory=dict)
     """RGBA colour per class name for the NGFF image-label table, e.g. {apple: [220, 30, 30, 255]}"""
 

@@ -608,17 +608,30 @@ def test_class_above_its_threshold_nowhere_says_the_value_range_found(tmp_path, 
     from srfpipe.segment.composite import composite_masks
 
     soft = np.zeros((30, 40), np.uint8)
-    soft[5:15, 10:30] = 100  # 0.39, below the threshold 0.5
+    soft[5:15, 10:30] = 50  # 0.196, below the threshold 0.5 and below the floor of soft masks (0.25)
     images, _, opts = _import_masks_setup(tmp_path, {0: soft, 1: soft})
     with caplog.at_level("WARNING"):
         _segment(images, opts, tmp_path / "apple.zarr")
     assert re.search(r"prompt 'apple': no pixel of its masks reaches the threshold 0.50 \(highest probability "
-                     r"0.392; 2 masks, 8-bit, values 0..100, read as probability value/255\)", caplog.text)
+                     r"0.196; 2 masks, 8-bit, values 0..50, read as probability value/255\)", caplog.text)
     out = tmp_path / "labels.zarr"
     message = assert_refused(lambda: composite_masks(images, [tmp_path / "apple.zarr"], {}, out, progress=False),
                              out, "apple", r"no frame contains any of the classes \['apple'\] \(apple: highest "
-                             r"probability 0.392 \(threshold 0.5\), imported 2 masks, 8-bit, values 0..100")
+                             r"probability 0.196 \(threshold 0.5\), imported 2 masks, 8-bit, values 0..50")
     assert "\n" not in message
+    # a soft export that peaks at 0.39 (values 0..100, a percentage) is read on its own scale: its
+    # 100 counts as certain, and the log says so
+    from srfpipe.artifacts import open_artifact
+
+    soft[5:15, 10:30] = 100
+    folder = tmp_path / "percent"
+    folder.mkdir()
+    images, _, opts = _import_masks_setup(folder, {0: soft, 1: soft})
+    with caplog.at_level("INFO"):
+        _segment(images, opts, folder / "apple.zarr")
+        labels = composite_masks(images, [folder / "apple.zarr"], {}, folder / "labels.zarr", progress=False)
+    assert "soft masks read on their own scale (labels.rescale_soft_masks): apple (highest 0.392)" in caplog.text
+    assert (np.asarray(open_artifact(labels)["label"][0]) == 1).sum() == 10 * 20
 
 
 @pytest.mark.hostile

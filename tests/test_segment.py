@@ -353,12 +353,14 @@ def test_composite_writes_labels_multihot_counts_and_drops_empty_classes(tmp_pat
     leaf[1] = 0.6
     masks = [write_mask(tmp_path / "apple.zarr", "apple", apple), write_mask(tmp_path / "branch.zarr", "branch", branch),
              write_mask(tmp_path / "leaf.zarr", "leaf", leaf, threshold=0.65)]
-    out = composite_masks(images, masks, validate_scene({})["labels"], tmp_path / "labels.zarr", progress=False)
+    as_given = validate_scene({"labels": {"rescale_soft_masks": False}})["labels"]
+    out = composite_masks(images, masks, as_given, tmp_path / "labels.zarr", progress=False)
     group = open_artifact(out, stage="composite")
     info = meta(group)
     label = np.asarray(group["label"][:])
     multihot = np.asarray(group["multihot"][:])
     assert info["classes"] == ["apple", "leaf"] and info["dropped_classes"] == ["branch"]
+    assert info["mask_scale"] == {"apple": 1.0, "leaf": 1.0}
     assert info["class_values"] == {"apple": 1, "leaf": 3}  # values keep the prompt order
     assert label[0, 0].tolist() == [1, 1, 1, 3, 3] and (label[1] == 0).all()  # 0.6 < leaf's 0.65
     assert multihot.shape == (2, 4, 5, 2)
@@ -378,6 +380,43 @@ def test_composite_writes_labels_multihot_counts_and_drops_empty_classes(tmp_pat
     group = open_artifact(kept)
     assert meta(group)["classes"] == ["apple", "branch", "leaf"] and meta(group)["dropped_classes"] == []
     assert group["multihot"].shape == (2, 4, 5, 3)
+    # by default each class is read on its own scale: apple peaks at 0.9 and leaf at 0.7, so leaf's
+    # 0.6 is 0.86 of its certainty, over its threshold 0.65; branch (all 0) stays as given
+    assert meta(group)["mask_scale"] == pytest.approx({"apple": 255 / 230, "branch": 1.0, "leaf": 255 / 178}, rel=1e-6)
+    assert (np.asarray(group["label"][1]) == 3).all()
+    assert np.asarray(group["probability"][0, 0, :3, 0]).tolist() == [255, 255, 255]
+
+
+def test_soft_masks_of_a_thin_part_are_read_on_their_own_scale(tmp_path):
+    """A stem one pixel wide whose masks were blurred (soft edges) peaks at 0.4: at the threshold 0.5
+    it marks nothing and its class is dropped. Read on its own scale it marks the stem; a prompt
+    whose masks stay under 0.25 (noise of something the images do not show) is still dropped."""
+    import cv2
+
+    n, height, width = 3, 24, 32
+    images = blank_images(tmp_path / "images.zarr", n=n, height=height, width=width)
+    truth = np.zeros((n, height, width), bool)
+    truth[:, 4:20, 15] = True  # a vertical stem, one pixel wide
+    stem = np.stack([cv2.GaussianBlur(t.astype(np.float32), (0, 0), 0.9) for t in truth])
+    assert 0.35 < stem.max() < 0.5
+    rng = np.random.default_rng(0)
+    noise = rng.uniform(0.0, 0.2, size=truth.shape).astype(np.float32)  # "fruit": not in the images
+    masks = [write_mask(tmp_path / "stem.zarr", "stem", stem), write_mask(tmp_path / "fruit.zarr", "fruit", noise)]
+    out = composite_masks(images, masks, validate_scene({})["labels"], tmp_path / "labels.zarr", progress=False)
+    info = meta(open_artifact(out, stage="composite"))
+    assert info["classes"] == ["stem"] and info["dropped_classes"] == ["fruit"]
+    label = np.asarray(open_artifact(out)["label"][:]) == 1
+    near = np.stack([cv2.dilate(t.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) for t in truth])
+    assert label[truth].all() and not label[~near].any()  # the whole stem, at most a pixel beside it
+    assert info["mask_scale"]["stem"] == pytest.approx(1 / stem.max(), rel=0.01)
+    assert info["highest_probability"]["fruit"] < 0.25
+    # the heads' targets on the same scale: the stem's pixels near 1
+    assert np.median(np.asarray(open_artifact(out)["probability"][:])[..., 0][truth]) >= 250
+    # as given, the stem marks nothing: no class is left, and the error names the highest probability
+    with pytest.raises(ValueError, match=r"no frame contains any of the classes \['stem', 'fruit'\] "
+                                         r"\(stem: highest probability 0\.4\d*"):
+        composite_masks(images, masks, validate_scene({"labels": {"rescale_soft_masks": False}})["labels"],
+                        tmp_path / "given.zarr", progress=False)
 
 
 def test_no_prompts_give_labels_with_zero_classes(tmp_path):

@@ -9,6 +9,11 @@ for the C independent semantic heads; `probability` keeps each kept class's mask
 (round(255 p)), which the heads train against by default (train.semantic_targets): a pixel half
 covered by a thin stem, or a soft mask's blurred rim, is neither in nor out.
 
+Soft masks are read on each class's own scale (`labels.rescale_soft_masks`): a class whose masks
+peak at h < 1 over the whole capture (a blurred stem, a segmenter never sure of a small part) has
+its probabilities divided by h, so its most certain pixel counts as certain and the threshold
+applies to the share of that certainty. A class that peaks under SOFT_MASK_FLOOR is read as given.
+
 A class that no frame contains (at most `labels.min_pixels` pixels over all frames) is reported,
 recorded in `dropped_classes` and left out of the label image, the multi-hot channels and
 `classes`, unless `labels.keep_empty_classes` is true. Kept classes keep their values, so a label
@@ -160,9 +165,31 @@ def _open_masks(paths: list[str | Path], frames: Frames):
     return arrays, prompts, thresholds, labelled, value_ranges
 
 
-def _probabilities(arrays, index: int, channels) -> np.ndarray:
-    """(C, H, W) float32 probabilities of one frame for the given mask channels."""
-    return np.stack([np.asarray(arrays[k][index]) for k in channels]).astype(np.float32) / 255.0
+def _probabilities(arrays, index: int, channels, scale: np.ndarray | None = None) -> np.ndarray:
+    """(C, H, W) float32 probabilities of one frame for the given mask channels, each multiplied by
+    its `scale` (per mask, all of them; see class_scales) and clipped at 1."""
+    probabilities = np.stack([np.asarray(arrays[k][index]) for k in channels]).astype(np.float32) / 255.0
+    if scale is None:
+        return probabilities
+    factor = np.asarray(scale, dtype=np.float32)[list(channels)].reshape(-1, 1, 1)
+    return np.minimum(probabilities * factor, np.float32(1.0))
+
+
+# A segmenter's soft masks need not reach 1 where it finds a class: a stem a pixel wide blurred by the
+# masks' soft edges peaks at 0.51 in the plant small in the frame (2 of its pixels reach the threshold
+# 0.5, where the truth has about 300); a text-prompted segmenter scores some prompts lower than
+# others. Read on the class's own scale, its best pixel counts as certain. A class whose masks peak
+# under this floor is read as given (so dropped as empty): noise of a prompt the images do not show,
+# or masks read on the wrong scale (16-bit values read as 8-bit), which the error must still name.
+SOFT_MASK_FLOOR = 0.25
+
+
+def class_scales(highest: np.ndarray, rescale: bool) -> np.ndarray:
+    """(C,) float32: 1 / each class's highest mask probability where that lies in [SOFT_MASK_FLOOR,
+    1) and `rescale` is on (labels.rescale_soft_masks), else 1."""
+    highest = np.asarray(highest, dtype=np.float32)
+    soft = rescale & (highest >= SOFT_MASK_FLOOR) & (highest < 1.0)
+    return np.where(soft, 1.0 / np.maximum(highest, SOFT_MASK_FLOOR), 1.0).astype(np.float32)
 
 
 def _why_empty(prompt: str, highest: float, threshold: float, value_range: dict | None) -> str:
@@ -177,19 +204,27 @@ def _why_empty(prompt: str, highest: float, threshold: float, value_range: dict 
 
 def _kept_classes(arrays, prompts: list[str], t: np.ndarray, settings, n: int, progress: bool,
                   value_ranges: list | None = None):
-    """Pass 1: which prompts' classes the scene contains; returns (kept indices, empty prompts).
+    """Pass 1: which prompts' classes the scene contains; returns (kept indices, empty prompts,
+    each prompt's scale: class_scales).
 
     An empty class is reported with the highest probability its masks reach and, for imported
     masks, the bit depth and value range found (a 16-bit or soft export read on the wrong scale
     shows there)."""
     from tqdm import tqdm
 
-    counts = np.zeros(len(prompts), dtype=np.int64)
-    highest = np.zeros(len(prompts), dtype=np.float32)
+    # each prompt's histogram of its 8-bit mask values: the pixels over the threshold follow for any scale
+    histograms = np.zeros((len(prompts), 256), dtype=np.int64)
     for i in tqdm(range(n), desc="count classes", unit="img", disable=not progress):
-        probs = _probabilities(arrays, i, range(len(prompts))).reshape(len(prompts), -1)
-        counts += class_members(probs, t).sum(axis=1)
-        highest = np.maximum(highest, probs.max(axis=1, initial=0.0))
+        for k in range(len(prompts)):
+            histograms[k] += np.bincount(np.asarray(arrays[k][i]).ravel(), minlength=256)
+    levels = np.arange(256, dtype=np.float32) / np.float32(255.0)
+    highest = np.array([levels[np.flatnonzero(h).max(initial=0)] for h in histograms], dtype=np.float32)
+    scale = class_scales(highest, settings.rescale_soft_masks)
+    counts = np.array([h[class_members(np.minimum(levels * s, np.float32(1.0))[None], [tk])[0]].sum()
+                       for h, s, tk in zip(histograms, scale, t)], dtype=np.int64)
+    rescaled = [f"{p} (highest {h:.3g})" for p, h, s in zip(prompts, highest, scale) if s != 1.0]
+    if rescaled:
+        log.info("soft masks read on their own scale (labels.rescale_soft_masks): %s", ", ".join(rescaled))
     min_pixels, keep_empty = settings.min_pixels, settings.keep_empty_classes
     empty = [p for p, c in zip(prompts, counts) if c <= min_pixels]
     kept = [k for k, p in enumerate(prompts) if keep_empty or p not in empty]
@@ -202,7 +237,7 @@ def _kept_classes(arrays, prompts: list[str], t: np.ndarray, settings, n: int, p
     if not kept:
         raise ValueError(f"composite: no frame contains any of the classes {prompts} ({why}); nothing to learn "
                          "(set labels.keep_empty_classes: true to keep them anyway)")
-    return kept, empty
+    return kept, empty, scale, highest
 
 
 def composite_masks(images_path: str | Path, mask_paths: list[str | Path], options: dict, out: str | Path,
@@ -221,9 +256,9 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
     t = np.asarray(thresholds, dtype=np.float32)
     keep_empty = settings.keep_empty_classes
     if prompts:
-        kept, empty = _kept_classes(arrays, prompts, t, settings, n, progress, value_ranges)
+        kept, empty, scale, highest = _kept_classes(arrays, prompts, t, settings, n, progress, value_ranges)
     else:
-        kept, empty = [], []
+        kept, empty, scale, highest = [], [], np.ones(0, np.float32), np.ones(0, np.float32)
         log.info("no prompts (segmentation.prompts is empty): labels with zero classes for %d frames", n)
     classes = [prompts[k] for k in kept]
     values = [all_values[k] for k in kept]
@@ -242,7 +277,7 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
         member_counts = np.zeros(len(kept), dtype=np.int64)
         for i in tqdm(range(n), desc="composite", unit="img", disable=not progress):
             if kept:
-                probs = _probabilities(arrays, i, kept)
+                probs = _probabilities(arrays, i, kept, scale)
                 frame = label_image(probs, t[kept], values)
                 bits = class_members(probs, t[kept])
             else:  # zero classes: every pixel is background
@@ -251,14 +286,14 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
             label[i] = frame
             multihot[i] = np.moveaxis(bits, 0, -1).astype(np.uint8)
             if kept:
-                probability[i] = np.stack([np.asarray(arrays[k][i]) for k in kept], axis=-1)
+                probability[i] = np.round(np.moveaxis(probs, 0, -1) * 255.0).astype(np.uint8)
             label_counts += np.bincount(np.searchsorted([0, *values], frame.ravel()), minlength=len(kept) + 1)
             member_counts += bits.sum(axis=(1, 2))
         pixel_counts = {c: int(m) for c, m in zip(classes, member_counts)}
         label_pixel_counts = {n_: int(c) for n_, c in zip(["background", *classes], label_counts)}
         table = image_label_table(classes, values, label_pixel_counts, settings.colors)
         label.attrs["image-label"] = table
-        hull_mask = partial(_hull_mask, arrays, kept)
+        hull_mask = partial(_hull_mask, arrays, kept, scale)
         background = resolve_background(frames, hull_mask, settings.background, bool(classes), labelled)
         update_attrs(group, **background)
         carving, carve_mask = labelled, hull_mask
@@ -282,6 +317,8 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
                      pixel_counts=pixel_counts, label_pixel_counts=label_pixel_counts,
                      dropped_classes=[] if keep_empty else empty, empty_classes=empty,
                      thresholds=dict(zip(prompts, thresholds)), width=width, height=height,
+                     highest_probability={p: float(h) for p, h in zip(prompts, highest)},
+                     mask_scale={prompts[k]: float(scale[k]) for k in kept},
                      labelled=labelled.tolist(),
                      unlabelled_frames=[name for name, known in zip(names, labelled) if not known],
                      **{"image-label": table})
@@ -290,13 +327,14 @@ def composite_masks(images_path: str | Path, mask_paths: list[str | Path], optio
     return Path(out)
 
 
-def _hull_mask(arrays, channels, index: int) -> np.ndarray:
-    """(H, W) bool: the pixels of frame `index` where any of the classes reaches HULL_MIN_PROBABILITY."""
+def _hull_mask(arrays, channels, scale, index: int) -> np.ndarray:
+    """(H, W) bool: the pixels of frame `index` where any of the classes reaches HULL_MIN_PROBABILITY
+    (on its own scale: class_scales)."""
     from srfpipe.segment.hull import HULL_MIN_PROBABILITY
 
     if not channels:
         return np.zeros(arrays[0].shape[1:], bool) if arrays else np.zeros((0, 0), bool)
-    return _probabilities(arrays, index, channels).max(axis=0) >= HULL_MIN_PROBABILITY
+    return _probabilities(arrays, index, channels, scale).max(axis=0) >= HULL_MIN_PROBABILITY
 
 
 # labels.background auto: the pixels no mask marks (2.5 % of the widest side away from any mask)

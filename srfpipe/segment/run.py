@@ -112,8 +112,11 @@ def segment_images(images_path: str | Path, prompt: str, options: dict, out: str
     if mask_values and not any(known):
         from srfpipe.segment.import_backend import describe_range
 
-        log.warning("prompt %r: no pixel of its masks reaches the threshold %.2f (highest probability %.3g; %s)",
-                    prompt, options["threshold"], highest, describe_range(mask_values))
+        from srfpipe.segment.composite import SOFT_MASK_FLOOR
+
+        log.warning("prompt %r: no pixel of its masks reaches the threshold %.2f (highest probability %.3g; %s); the "
+                    "composite reads a class whose masks peak at %g or more on its own scale (labels.rescale_soft_masks)",
+                    prompt, options["threshold"], highest, describe_range(mask_values), SOFT_MASK_FLOOR)
     log.info("%s: %d masks (%d frames unlabelled), mean coverage %.3f at threshold %.2f", out, len(known),
              n - len(known), float(np.mean(known)), options["threshold"])
     return Path(out)
