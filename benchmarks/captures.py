@@ -23,6 +23,7 @@ every 8th view held out):
                 over 30 degrees of azimuth (a forward-facing capture like the fern's, with ground truth).
 
     python benchmarks/captures.py [--quick] [--workdir DIR] [--scenes NAME ...] [--panel-only] [--masks-only]
+                                  [--mask-blur-sweep]
 
 A scene whose images shrink by another factor than 4 (images.downscale null keeps the plant's 18
 views at 256 px) is also measured on its held-out views at factor 4, the resolution earlier runs
@@ -133,24 +134,89 @@ def prepare_soft_partial_masks(workdir: Path, name: str, scene: dict) -> Path:
     """plant-small's masks from its generated ground-truth labels: soft edges everywhere, and the
     parts thinner than THIN_PART_PX gone from every third view (a morphological opening), as a
     segmenter's masks of a thin plant look. One PNG per prompt and frame, 0-255."""
-    import cv2
-
     capture = workdir / "results" / name / "capture" / "ground_truth"
     values = scene["segmentation"]["import"].get("values") or {}
     if not values:  # the plant's label values, from its own scene file
         values = yaml.safe_load((REPO / "config" / "scenes" / "plant.yaml").read_text())["segmentation"]["import"]["values"]
-    out = workdir / "prepared" / name / "masks"
+    return write_soft_partial_masks(capture / "labels", values, workdir / "prepared" / name / "masks", MASK_BLUR_PX)
+
+
+def write_soft_partial_masks(labels: Path, values: dict, out: Path, blur_px: float) -> Path:
+    """{prompt}/{frame}.png under `out` from the truth's label images in `labels`: each prompt's
+    pixels (`values`: prompt -> label value(s)), parts thinner than THIN_PART_PX opened away in
+    every third view, then a Gaussian blur of sigma `blur_px`, 0-255."""
+    import cv2
+
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (THIN_PART_PX, THIN_PART_PX))
-    for index, path in enumerate(sorted((capture / "labels").glob("*.png"))):
+    for index, path in enumerate(sorted(labels.glob("*.png"))):
         label = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         for prompt, value in values.items():
             mask = np.isin(label, np.atleast_1d(value)).astype(np.uint8)
             if index % 3 == 1:
                 mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, kernel)
-            soft = cv2.GaussianBlur(mask.astype(np.float32), (0, 0), MASK_BLUR_PX)
+            soft = cv2.GaussianBlur(mask.astype(np.float32), (0, 0), blur_px)
             (out / prompt).mkdir(parents=True, exist_ok=True)
             cv2.imwrite(str(out / prompt / path.name), np.round(255 * np.clip(soft, 0, 1)).astype(np.uint8))
     return out
+
+
+MASK_BLUR_SWEEP = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
+
+
+def mask_blur_sweep(workdir: Path, extra: tuple) -> int:
+    """`--mask-blur-sweep`: plant-small's masks made at each blur of MASK_BLUR_SWEEP (its own is
+    MASK_BLUR_PX), imported and composited by the stages' own functions as given and on each class's
+    own scale (`labels.rescale_soft_masks`), scored against the truth on the labelled training views
+    (every prompt's class kept, so a class its masks lose scores 0). Writes captures_mask_blur_sweep.json."""
+    import shutil
+    import tempfile
+
+    from srfpipe.artifacts import meta, open_artifact
+    from srfpipe.config import validate_scene
+    from srfpipe.evaluate import mask_agreement
+    from srfpipe.segment.composite import composite_masks
+    from srfpipe.segment.run import prompt_options, segment_images
+    from srfpipe.srf.data import load_posed_images, split_views
+
+    name = "plant-small"
+    scenes = scene_configs([name], quick=False)
+    write_workdir(workdir, scenes, "occupancy")
+    prepare_variants(workdir, scenes, extra)
+    run_workflow(workdir, [f"results/{name}/labels.zarr"], log=workdir / "snakemake.log", extra=extra)
+    results = workdir / "results" / name
+    scene = validate_scene(scenes[name])
+    prompts = scene["segmentation"]["prompts"]
+    values = yaml.safe_load((REPO / "config" / "scenes" / "plant.yaml").read_text())["segmentation"]["import"]["values"]
+    train, _ = split_views(load_posed_images(results / "images.zarr").count, holdout_every(scenes[name]))
+    rows = {}
+    with tempfile.TemporaryDirectory(dir=workdir) as tmp:
+        for blur in MASK_BLUR_SWEEP:
+            folder = Path(tmp) / f"blur-{blur:g}"
+            write_soft_partial_masks(results / "capture" / "ground_truth" / "labels", {p: values[p] for p in prompts},
+                                     folder / "png", blur)
+            section = {**scene["segmentation"], "import": {**scene["segmentation"]["import"], "path": str(folder / "png")}}
+            masks = [segment_images(results / "images.zarr", prompt, prompt_options(section, prompt),
+                                    folder / f"{prompt}.zarr", progress=False) for prompt in prompts]
+            row = {}
+            for mode, rescale in (("as_given", False), ("own_scale", True)):
+                labels = composite_masks(results / "images.zarr", masks,
+                                         {**scene["labels"], "rescale_soft_masks": rescale, "keep_empty_classes": True},
+                                         folder / f"labels-{mode}.zarr", progress=False)
+                data = load_posed_images(results / "images.zarr", labels)
+                agreement = mask_agreement(data, train)
+                row[mode] = {"miou_classes": agreement["miou_masks_gt_classes"],
+                             "iou": {c: agreement["iou_masks_gt"][c] for c in prompts},
+                             "object_iou": agreement["object_iou_masks_gt"]}
+                row["highest_probability"] = meta(open_artifact(labels))["highest_probability"]
+            rows[f"{blur:g}"] = row
+            shutil.rmtree(folder)
+            print(f"blur {blur:g} px: highest {', '.join(f'{p} {h:.2f}' for p, h in row['highest_probability'].items())}; "
+                  f"class mIoU as given {row['as_given']['miou_classes']:.3f}, own scale {row['own_scale']['miou_classes']:.3f}")
+    path = result_path("captures_mask_blur_sweep", False)
+    write_result(path, {"what": mask_blur_sweep.__doc__.split("Writes")[0].strip(), "scene": name,
+                        "panel_blur_px": MASK_BLUR_PX, "thin_part_px": THIN_PART_PX, "threshold": 0.5,
+                        "blur_px": rows, "machine": machine_info()})
+    return 0
 
 
 def prepare_variants(workdir: Path, scenes: dict[str, dict], extra: tuple) -> None:
@@ -376,7 +442,8 @@ def mask_ceiling(results: Path, scene: dict) -> dict:
 
 def mask_ceiling_by_threshold(data, masks_dir: Path, train: np.ndarray) -> dict:
     """mIoU of the classes against the truth on the labelled training views `train` of `data` (with
-    ground truth), the per-prompt masks in `masks_dir` composited at each of MASK_THRESHOLDS."""
+    ground truth), the per-prompt masks in `masks_dir` composited at each of MASK_THRESHOLDS as given
+    (`labels.rescale_soft_masks` false: the thresholds apply to the masks' own values)."""
     import zarr
 
     from srfpipe.segment.composite import label_image
@@ -499,7 +566,12 @@ def main() -> int:
     parser.add_argument("--masks-only", action="store_true",
                         help="build the scenes up to labels.zarr (no training) and add the masks' own mIoU against "
                              "ground truth (masks_miou_classes) to captures.json")
+    parser.add_argument("--mask-blur-sweep", action="store_true",
+                        help="plant-small's masks at blurs of 0.5 to 3 px, composited as given and on each class's own "
+                             "scale, against the truth (no training): captures_mask_blur_sweep.json")
     args = parser.parse_args()
+    if args.mask_blur_sweep:
+        return mask_blur_sweep(args.workdir, tuple(args.snakemake_args))
     if args.masks_only:
         return measure_masks_only(args.workdir, args.scenes, result_path("captures", args.quick), tuple(args.snakemake_args))
     if args.panel_only:
