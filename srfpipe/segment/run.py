@@ -110,9 +110,8 @@ def segment_images(images_path: str | Path, prompt: str, options: dict, out: str
                      unlabelled_frames=[name for name, known in zip(names, labelled) if not known], **source)
     known = [c for c in coverage if c is not None]
     if mask_values and not any(known):
-        from srfpipe.segment.import_backend import describe_range
-
         from srfpipe.segment.composite import SOFT_MASK_FLOOR
+        from srfpipe.segment.import_backend import describe_range
 
         log.warning("prompt %r: no pixel of its masks reaches the threshold %.2f (highest probability %.3g; %s); the "
                     "composite reads a class whose masks peak at %g or more on its own scale (labels.rescale_soft_masks)",
