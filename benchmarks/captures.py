@@ -174,7 +174,7 @@ def mask_blur_sweep(workdir: Path, extra: tuple) -> int:
     from srfpipe.artifacts import meta, open_artifact
     from srfpipe.config import validate_scene
     from srfpipe.evaluate import mask_agreement
-    from srfpipe.segment.composite import composite_masks
+    from srfpipe.segment.composite import composite_masks, read_frames
     from srfpipe.segment.run import prompt_options, segment_images
     from srfpipe.srf.data import load_posed_images, split_views
 
@@ -187,7 +187,7 @@ def mask_blur_sweep(workdir: Path, extra: tuple) -> int:
     scene = validate_scene(scenes[name])
     prompts = scene["segmentation"]["prompts"]
     values = yaml.safe_load((REPO / "config" / "scenes" / "plant.yaml").read_text())["segmentation"]["import"]["values"]
-    train, _ = split_views(load_posed_images(results / "images.zarr").count, holdout_every(scenes[name]))
+    train, _ = split_views(read_frames(results / "images.zarr").count, holdout_every(scenes[name]))
     rows = {}
     with tempfile.TemporaryDirectory(dir=workdir) as tmp:
         for blur in MASK_BLUR_SWEEP:
@@ -207,7 +207,7 @@ def mask_blur_sweep(workdir: Path, extra: tuple) -> int:
                 row[mode] = {"miou_classes": agreement["miou_masks_gt_classes"],
                              "iou": {c: agreement["iou_masks_gt"][c] for c in prompts},
                              "object_iou": agreement["object_iou_masks_gt"]}
-                row["highest_probability"] = meta(open_artifact(labels))["highest_probability"]
+            row["highest_probability"] = meta(open_artifact(labels))["highest_probability"]  # either reading's
             rows[f"{blur:g}"] = row
             shutil.rmtree(folder)
             print(f"blur {blur:g} px: highest {', '.join(f'{p} {h:.2f}' for p, h in row['highest_probability'].items())}; "

@@ -177,7 +177,7 @@ def _probabilities(arrays, index: int, channels, scale: np.ndarray | None = None
 
 # A segmenter's soft masks need not reach 1 where it finds a class: a stem a pixel wide blurred by the
 # masks' soft edges peaks at 0.51 in the plant small in the frame (2 of its pixels reach the threshold
-# 0.5, where the truth has about 300); a text-prompted segmenter scores some prompts lower than
+# 0.5, where the truth has 256 in the 18 views); a text-prompted segmenter scores some prompts lower than
 # others. Read on the class's own scale, its best pixel counts as certain. A class whose masks peak
 # under this floor is read as given (so dropped as empty): noise of a prompt the images do not show,
 # or masks read on the wrong scale (16-bit values read as 8-bit), which the error must still name.
@@ -189,6 +189,7 @@ def class_scales(highest: np.ndarray, rescale: bool) -> np.ndarray:
     1) and `rescale` is on (labels.rescale_soft_masks), else 1."""
     highest = np.asarray(highest, dtype=np.float32)
     soft = rescale & (highest >= SOFT_MASK_FLOOR) & (highest < 1.0)
+    # np.where evaluates both branches: the floor keeps an empty class (highest 0) from dividing by 0
     return np.where(soft, 1.0 / np.maximum(highest, SOFT_MASK_FLOOR), 1.0).astype(np.float32)
 
 
