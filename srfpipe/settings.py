@@ -461,10 +461,10 @@ class TrainSettings(SettingsSection):
     """log2 of the hash table size per level (no default: 19)"""
     grid_lr_scale: float = 10.0
     """learning-rate multiplier of dense grid tables (DVGO-style fast grids)"""
-    background_lr_scale: float | None = None
+    background_lr_scale: float = 1.0
     """learning-rate multiplier of the background colour model (what a ray sees beyond the field).
-    null = from the capture: 0.1 on an empty backdrop, where that model is most of every view
-    and, learning at the field's rate, keeps fitting the ..."""
+    0.1 suits long runs on an empty backdrop, where that model is most of every view and keeps
+    fitting the training directions after the object has ..."""
     semantic_octaves: int = 4
     """frequency octaves of the position fed to the semantic head besides h.detach() (0 = h only)"""
 

@@ -103,7 +103,7 @@ def parameter_groups(model, grid_lr_scale: float, cameras=None, lr: float = 1e-2
     """Adam groups: dense grid tables learn `grid_lr_scale` times faster (DVGO uses 1e-1 for its
     grids): one Adam step moves a grid value by at most ~lr, and a cell of fog has to fall by
     several units of log-density before the occupancy grid can skip it. The background colour
-    model learns `background_lr_scale` times the field's rate (see EMPTY_BACKDROP_LR_SCALE). The
+    model learns `background_lr_scale` times the field's rate (train.background_lr_scale). The
     camera corrections (`cameras`, a CameraRefinement) learn at `camera_lr` when the field learns
     at `lr`, on its schedule."""
     grids = [m.table for m in model.modules() if type(m).__name__ == "DenseGrid"]
@@ -362,11 +362,6 @@ def resolve_grid_defaults(settings, data) -> dict:
 # the plant's held-out backdrop was guessed 8.5 times worse (MSE) than the training views' mean
 # colour, and held-out PSNR rose 3.2 dB with two; the orchard (a sky) lost 0.44 and 0.37 dB with two
 EMPTY_BACKDROP_SH_DEGREE = 2
-# the background model's learning rate on an empty backdrop, a tenth of the field's: at the
-# field's rate it goes on fitting the training directions after the object has stopped gaining
-# from the steps (the plant, seed 1: held out 34.06 dB at 2500 steps, 33.47 at 6000, of which
-# swapping in the 2500-step background model won back 0.21); the panel's rows are in docs/benchmarks.md
-EMPTY_BACKDROP_LR_SCALE = 0.1
 # background_rays auto: masks that mark less than this share of the pixels not of the backdrop's
 # colour miss parts of the objects (soft, partial masks: the small plant's mark 0.20 of them; the
 # plant's ground-truth masks 0.90, the rest being edge pixels that blend plant and backdrop)
@@ -426,8 +421,6 @@ def resolve_data_defaults(settings, data):
     background_sh_degree: on an empty backdrop, EMPTY_BACKDROP_SH_DEGREE: the backdrop is most of
     every view and a held-out view looks at directions between the training views', which the
     background model must interpolate, not fit; in a scene, sh_degree.
-    background_lr_scale: on an empty backdrop, EMPTY_BACKDROP_LR_SCALE, for the same reason (the
-    background model keeps fitting the training directions as long as it learns); in a scene, 1.
     distortion: when the background is a scene and the cameras stand round their focus point
     (`cameras.cameras_surround`), SURROUNDING_SCENE_DISTORTION; otherwise 0.
     camera_refinement: a real capture's poses were estimated (COLMAP, structure from motion) and
@@ -471,10 +464,6 @@ def resolve_data_defaults(settings, data):
     if settings.background_sh_degree is None:
         changes["background_sh_degree"] = EMPTY_BACKDROP_SH_DEGREE if data.background_empty else settings.sh_degree
         log.info("background_sh_degree %d (background %s)", changes["background_sh_degree"],
-                 "empty" if data.background_empty else "a scene")
-    if settings.background_lr_scale is None:
-        changes["background_lr_scale"] = EMPTY_BACKDROP_LR_SCALE if data.background_empty else 1.0
-        log.info("background_lr_scale %g (background %s)", changes["background_lr_scale"],
                  "empty" if data.background_empty else "a scene")
     if settings.distortion is None:
         belongs = round_a_subject_in_a_scene(data.poses_scene.detach().cpu().numpy(), data.background_empty)
