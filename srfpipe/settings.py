@@ -465,6 +465,9 @@ class TrainSettings(SettingsSection):
     """learning-rate multiplier of the background colour model (what a ray sees beyond the field).
     0.1 suits long runs on an empty backdrop, where that model is most of every view and keeps
     fitting the training directions after the object has ..."""
+    background_lr_after: float = 0.0
+    """fraction of the run's progress (steps, or the time budget when that comes first) during which
+    the background colour model still learns at the field's rate"""
     semantic_octaves: int = 4
     """frequency octaves of the position fed to the semantic head besides h.detach() (0 = h only)"""
 

@@ -414,6 +414,28 @@ def test_a_background_learning_rate_scale_moves_the_background_model_alone():
     assert moved[0.1] == pytest.approx(0.1 * moved[1.0], rel=1e-3)
 
 
+def test_the_background_learning_rate_scale_starts_after_its_share_of_the_run(scene, tmp_path):
+    """train.background_lr_after: through a real training step, the background colour model learns
+    at the field's rate until that share of the run, then at background_lr_scale times it."""
+    from srfpipe.settings import TrainSettings
+    from srfpipe.srf import trainer
+
+    folder, images, labels = scene
+    assert section_defaults("train")["background_lr_after"] == 0.0
+    settings = TrainSettings.from_options(tiny_options(iterations=10, checkpoint_every=0, background_lr_scale=0.1,
+                                                       background_lr_after=0.5))
+    run = trainer.start_run(images, labels, tmp_path / "srf.zarr", settings, 5, None)
+    background = {id(p) for p in run.model.field.background_mlp.parameters()}
+    field, = [g for g in run.optimizer.param_groups if g["lr_scale"] == 1.0]
+    apart, = [g for g in run.optimizer.param_groups if {id(p) for p in g["params"]} == background]
+    rates = []
+    for step in range(10):
+        trainer.training_step(run, step)
+        run.step = step + 1
+        rates.append(float(apart["lr"]) / float(field["lr"]))
+    assert rates[:5] == pytest.approx([1.0] * 5) and rates[5:] == pytest.approx([0.1] * 5)
+
+
 def test_background_penalty_only_where_the_capture_says_its_background_is_empty():
     """Masks name only the prompted objects: unless the scene says its background is empty, the
     opacity of unmasked rays is not penalised, whatever the box (a hull box included)."""

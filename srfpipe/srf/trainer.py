@@ -99,12 +99,13 @@ def training_progress(step: int, iterations: int, seconds: float, time_budget: f
 
 
 def parameter_groups(model, grid_lr_scale: float, cameras=None, lr: float = 1e-2,
-                     camera_lr: float = 6e-4, background_lr_scale: float = 1.0) -> list[dict]:
+                     camera_lr: float = 6e-4, background_lr_scale: float = 1.0,
+                     background_lr_after: float = 0.0) -> list[dict]:
     """Adam groups: dense grid tables learn `grid_lr_scale` times faster (DVGO uses 1e-1 for its
     grids): one Adam step moves a grid value by at most ~lr, and a cell of fog has to fall by
     several units of log-density before the occupancy grid can skip it. The background colour
-    model learns `background_lr_scale` times the field's rate (train.background_lr_scale). The
-    camera corrections (`cameras`, a CameraRefinement) learn at `camera_lr` when the field learns
+    model learns `background_lr_scale` times the field's rate (train.background_lr_scale) once the
+    run's progress reaches `background_lr_after`, and at the field's rate before. The camera corrections (`cameras`, a CameraRefinement) learn at `camera_lr` when the field learns
     at `lr`, on its schedule."""
     grids = [m.table for m in model.modules() if type(m).__name__ == "DenseGrid"]
     background = list(model.field.background_mlp.parameters()) if float(background_lr_scale) != 1.0 else []
@@ -114,10 +115,16 @@ def parameter_groups(model, grid_lr_scale: float, cameras=None, lr: float = 1e-2
     if grids:
         groups.append({"params": grids, "lr_scale": float(grid_lr_scale)})
     if background:
-        groups.append({"params": background, "lr_scale": float(background_lr_scale)})
+        groups.append({"params": background, "lr_scale": float(background_lr_scale),
+                       "lr_after": float(background_lr_after)})
     if cameras is not None:
         groups.append({"params": list(cameras.parameters()), "lr_scale": camera_lr / lr})
     return groups
+
+
+def group_lr_scale(group: dict, progress: float) -> float:
+    """A group's multiple of the field's rate at this progress: 1 until its `lr_after`."""
+    return group["lr_scale"] if progress >= group.get("lr_after", 0.0) else 1.0
 
 
 def fingerprint(options: dict, model_config: dict, inputs: list[dict]) -> str:
@@ -592,7 +599,7 @@ def training_step(run: TrainingRun, step: int):
             run.graphed.check_capacity()
     progress = training_progress(step, s.iterations, run.seconds, s.time_budget)
     for group in run.optimizer.param_groups:
-        lr = learning_rate(progress, s.lr, s.lr_final, s.lr_hold) * group["lr_scale"]
+        lr = learning_rate(progress, s.lr, s.lr_final, s.lr_hold) * group_lr_scale(group, progress)
         if hasattr(group["lr"], "fill_"):  # a CUDA graph's Adam reads it from the device (srf/graphed.py)
             group["lr"].fill_(lr)
         else:
@@ -722,7 +729,7 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
 
         cameras = CameraRefinement(data.poses_scene.to(device), train_views)
     optimizer = torch.optim.Adam(parameter_groups(model, settings.grid_lr_scale, cameras, settings.lr, settings.camera_lr,
-                                                  settings.background_lr_scale),
+                                                  settings.background_lr_scale, settings.background_lr_after),
                                  lr=settings.lr, eps=1e-15,
                                  fused=device.type in ("cpu", "cuda"))
     autocast, precision = autocast_context(device, settings.precision)
