@@ -461,13 +461,14 @@ class TrainSettings(SettingsSection):
     """log2 of the hash table size per level (no default: 19)"""
     grid_lr_scale: float = 10.0
     """learning-rate multiplier of dense grid tables (DVGO-style fast grids)"""
-    background_lr_scale: float = 1.0
-    """learning-rate multiplier of the background colour model (what a ray sees beyond the field).
-    0.1 suits long runs on an empty backdrop, where that model is most of every view and keeps
-    fitting the training directions after the object has ..."""
-    background_lr_after: float = 0.0
+    background_lr_scale: float | None = None
+    """learning-rate multiplier of the background colour model (what a ray sees beyond the field),
+    from background_lr_after of the run on. null = from the capture: 0.1 on an empty backdrop,
+    where that model is most of every view and, once learnt, ..."""
+    background_lr_after: float = 0.3
     """fraction of the run's progress (steps, or the time budget when that comes first) during which
-    the background colour model still learns at the field's rate"""
+    the background colour model learns at the field's rate before background_lr_scale applies: it
+    has to learn the backdrop first (a tenth from the ..."""
     semantic_octaves: int = 4
     """frequency octaves of the position fed to the semantic head besides h.detach() (0 = h only)"""
 

@@ -382,16 +382,22 @@ def test_the_background_model_reads_the_direction_alone_only_on_an_empty_backdro
 
 def test_a_background_learning_rate_scale_moves_the_background_model_alone():
     """train.background_lr_scale: the background colour model's parameters, and only those, go to an
-    optimizer group of their own at that multiple of the field's rate; at 1 (the default) the groups
-    are the ones without the key, so every capture trains as before."""
+    optimizer group of their own at that multiple of the field's rate; at 1 (a scene's) the groups
+    are the ones without the key. By default 0.1 on an empty backdrop, 1 in a scene."""
     from srfpipe.srf.model import SRFModel, build_model_config
     from srfpipe.srf.trainer import parameter_groups
 
+    from srfpipe.srf.trainer import EMPTY_BACKDROP_BACKGROUND_LR_SCALE, resolve_data_defaults
+
     scene = camera_ring_data(100.0)
+    assert resolve_data_defaults({}, scene).background_lr_scale == 1.0
+    assert resolve_data_defaults({"background_lr_scale": 0.5}, scene).background_lr_scale == 0.5
+    scene.background_empty = True
+    assert resolve_data_defaults({}, scene).background_lr_scale == EMPTY_BACKDROP_BACKGROUND_LR_SCALE == 0.1
+    scene.background_empty = False
     options = {**section_defaults("train"), "default_cells": 16, "outer_resolution": 8, "hidden": 16}
     model = SRFModel(build_model_config(options, scene.bounds_world, scene.scene_from_world, ["a"], 4))
     background = {id(p) for p in model.field.background_mlp.parameters()}
-    assert section_defaults("train")["background_lr_scale"] == 1.0
     for scale, apart in ((0.1, True), (1.0, False)):
         groups = parameter_groups(model, 10.0, background_lr_scale=scale)
         grouped = [id(p) for g in groups for p in g["params"]]
@@ -421,7 +427,7 @@ def test_the_background_learning_rate_scale_starts_after_its_share_of_the_run(sc
     from srfpipe.srf import trainer
 
     folder, images, labels = scene
-    assert section_defaults("train")["background_lr_after"] == 0.0
+    assert section_defaults("train")["background_lr_after"] == 0.3
     settings = TrainSettings.from_options(tiny_options(iterations=10, checkpoint_every=0, background_lr_scale=0.1,
                                                        background_lr_after=0.5))
     run = trainer.start_run(images, labels, tmp_path / "srf.zarr", settings, 5, None)

@@ -369,6 +369,11 @@ def resolve_grid_defaults(settings, data) -> dict:
 # the plant's held-out backdrop was guessed 8.5 times worse (MSE) than the training views' mean
 # colour, and held-out PSNR rose 3.2 dB with two; the orchard (a sky) lost 0.44 and 0.37 dB with two
 EMPTY_BACKDROP_SH_DEGREE = 2
+# the background model's learning rate on an empty backdrop, as a multiple of the field's, once
+# background_lr_after of the run has passed: it is most of every view and, learnt, keeps fitting the
+# training directions while the object gains nothing from it (the three plants, the panel's steps:
+# +0.14, +0.34, +0.01 dB held out; at 2500 steps +0.03, +0.09, where a tenth from the first step lost 0.5)
+EMPTY_BACKDROP_BACKGROUND_LR_SCALE = 0.1
 # background_rays auto: masks that mark less than this share of the pixels not of the backdrop's
 # colour miss parts of the objects (soft, partial masks: the small plant's mark 0.20 of them; the
 # plant's ground-truth masks 0.90, the rest being edge pixels that blend plant and backdrop)
@@ -425,6 +430,8 @@ def resolve_data_defaults(settings, data):
     along its ray, so opacity there is penalised; otherwise (the orchard's ground, a room) the box holds
     things the classes do not name, so it is off.
     background_rays: which of those rays (see `background_rays`).
+    background_lr_scale: on an empty backdrop, EMPTY_BACKDROP_BACKGROUND_LR_SCALE (from
+    background_lr_after of the run on); in a scene 1, the field's rate.
     background_sh_degree: on an empty backdrop, EMPTY_BACKDROP_SH_DEGREE: the backdrop is most of
     every view and a held-out view looks at directions between the training views', which the
     background model must interpolate, not fit; in a scene, sh_degree.
@@ -471,6 +478,10 @@ def resolve_data_defaults(settings, data):
     if settings.background_sh_degree is None:
         changes["background_sh_degree"] = EMPTY_BACKDROP_SH_DEGREE if data.background_empty else settings.sh_degree
         log.info("background_sh_degree %d (background %s)", changes["background_sh_degree"],
+                 "empty" if data.background_empty else "a scene")
+    if settings.background_lr_scale is None:
+        changes["background_lr_scale"] = EMPTY_BACKDROP_BACKGROUND_LR_SCALE if data.background_empty else 1.0
+        log.info("background_lr_scale %g (background %s)", changes["background_lr_scale"],
                  "empty" if data.background_empty else "a scene")
     if settings.distortion is None:
         belongs = round_a_subject_in_a_scene(data.poses_scene.detach().cpu().numpy(), data.background_empty)
