@@ -105,8 +105,9 @@ def parameter_groups(model, grid_lr_scale: float, cameras=None, lr: float = 1e-2
     grids): one Adam step moves a grid value by at most ~lr, and a cell of fog has to fall by
     several units of log-density before the occupancy grid can skip it. The background colour
     model learns `background_lr_scale` times the field's rate (train.background_lr_scale) once the
-    run's progress reaches `background_lr_after`, and at the field's rate before. The camera corrections (`cameras`, a CameraRefinement) learn at `camera_lr` when the field learns
-    at `lr`, on its schedule."""
+    run's progress reaches `background_lr_after`, and at the field's rate before. The camera
+    corrections (`cameras`, a CameraRefinement) learn at `camera_lr` when the field learns at `lr`,
+    on its schedule."""
     grids = [m.table for m in model.modules() if type(m).__name__ == "DenseGrid"]
     background = list(model.field.background_mlp.parameters()) if float(background_lr_scale) != 1.0 else []
     apart = {id(p) for p in grids + background}
