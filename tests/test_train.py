@@ -385,9 +385,7 @@ def test_a_background_learning_rate_scale_moves_the_background_model_alone():
     optimizer group of their own at that multiple of the field's rate; at 1 (a scene's) the groups
     are the ones without the key. By default 0.1 on an empty backdrop, 1 in a scene."""
     from srfpipe.srf.model import SRFModel, build_model_config
-    from srfpipe.srf.trainer import parameter_groups
-
-    from srfpipe.srf.trainer import EMPTY_BACKDROP_BACKGROUND_LR_SCALE, resolve_data_defaults
+    from srfpipe.srf.trainer import EMPTY_BACKDROP_BACKGROUND_LR_SCALE, parameter_groups, resolve_data_defaults
 
     scene = camera_ring_data(100.0)
     assert resolve_data_defaults({}, scene).background_lr_scale == 1.0
