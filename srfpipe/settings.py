@@ -459,6 +459,10 @@ class TrainSettings(SettingsSection):
     """hash grid levels (no default: 16)"""
     hash_log2_table_size: int | None = field(default=None, metadata={"unset": True})
     """log2 of the hash table size per level (no default: 19)"""
+    density_decay: float = 0.0
+    """decoupled weight decay of the dense log-density grids: Adam shrinks each value by lr *
+    density_decay a step towards the initial opacity (Zip-NeRF decays its grids), so density the
+    views stop supporting fades (0 = off)"""
     grid_lr_scale: float = 10.0
     """learning-rate multiplier of dense grid tables (DVGO-style fast grids)"""
     background_lr_scale: float | None = None

@@ -418,6 +418,42 @@ def test_a_background_learning_rate_scale_moves_the_background_model_alone():
     assert moved[0.1] == pytest.approx(0.1 * moved[1.0], rel=1e-3)
 
 
+def test_density_decay_fades_unsupported_density_and_nothing_else():
+    """train.density_decay: the dense log-density grids, and only those, get Adam's decoupled weight
+    decay; a cell that no ray reaches falls back towards the initial opacity by lr * decay a step,
+    while the feature grid and a cell the loss holds up keep their values. Off (0) by default."""
+    from srfpipe.srf.model import SRFModel, build_model_config
+    from srfpipe.srf.trainer import parameter_groups
+
+    assert section_defaults("train")["density_decay"] == 0.0
+    scene = camera_ring_data(100.0)
+    options = {**section_defaults("train"), "default_cells": 16, "outer_resolution": 8, "hidden": 16}
+    model = SRFModel(build_model_config(options, scene.bounds_world, scene.scene_from_world, ["a"], 4))
+    field = model.field
+    sigma_tables = [p for g in (field.inner_sigma, field.outer_sigma) if g is not None for p in g.parameters()]
+    assert not any("weight_decay" in g for g in parameter_groups(model, 10.0))
+    groups = parameter_groups(model, 10.0, density_decay=0.05)
+    assert sorted(id(p) for g in groups for p in g["params"]) == sorted(id(p) for p in model.parameters())
+    decayed = [g for g in groups if g.get("weight_decay")]
+    assert len(decayed) == 1 and {id(p) for p in decayed[0]["params"]} == {id(p) for p in sigma_tables}
+    lr = 1e-2
+    optimizer = torch.optim.Adam([{**g, "lr": lr * g["lr_scale"]} for g in groups], decoupled_weight_decay=True)
+    table = sigma_tables[0]
+    with torch.no_grad():
+        for p in sigma_tables:
+            p.fill_(3.0)  # a log-density well above the initial opacity's
+    features = [p.detach().clone() for p in field.inner.parameters()]
+    for _ in range(50):  # the loss reaches one cell's value (it wants it at 3) and no other
+        optimizer.zero_grad()
+        (table.view(-1)[0] - 3.0).pow(2).backward()
+        optimizer.step()
+    values = table.detach().view(-1)
+    assert float(values[0]) == pytest.approx(3.0, abs=0.1)
+    assert float(values[-1]) == pytest.approx(3.0 * (1 - lr * 10.0 * 0.05) ** 50, rel=1e-4)
+    assert float(values[-1]) < 2.4
+    assert all(torch.equal(p, f) for p, f in zip(field.inner.parameters(), features))
+
+
 def test_the_background_learning_rate_scale_starts_after_its_share_of_the_run(scene, tmp_path):
     """train.background_lr_after: through a real training step, the background colour model learns
     at the field's rate until that share of the run, then at background_lr_scale times it."""

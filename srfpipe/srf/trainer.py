@@ -100,21 +100,31 @@ def training_progress(step: int, iterations: int, seconds: float, time_budget: f
 
 def parameter_groups(model, grid_lr_scale: float, cameras=None, lr: float = 1e-2,
                      camera_lr: float = 6e-4, background_lr_scale: float = 1.0,
-                     background_lr_after: float = 0.0) -> list[dict]:
+                     background_lr_after: float = 0.0, density_decay: float = 0.0) -> list[dict]:
     """Adam groups: dense grid tables learn `grid_lr_scale` times faster (DVGO uses 1e-1 for its
     grids): one Adam step moves a grid value by at most ~lr, and a cell of fog has to fall by
     several units of log-density before the occupancy grid can skip it. The background colour
     model learns `background_lr_scale` times the field's rate (train.background_lr_scale) once the
     run's progress reaches `background_lr_after`, and at the field's rate before. The camera
     corrections (`cameras`, a CameraRefinement) learn at `camera_lr` when the field learns at `lr`,
-    on its schedule."""
+    on its schedule. With `density_decay` > 0 the dense log-density grids form a group of their
+    own whose values Adam shrinks by lr * density_decay a step towards 0, the initial opacity
+    (decoupled weight decay, as Zip-NeRF decays its grids): density that the views stop
+    supporting fades instead of staying where an early step put it."""
     grids = [m.table for m in model.modules() if type(m).__name__ == "DenseGrid"]
+    field = model.field
+    density = ([p for grid in (field.inner_sigma, field.outer_sigma) if grid is not None for p in grid.parameters()
+                if any(p is g for g in grids)] if float(density_decay) > 0 and field.density_grid else [])
     background = list(model.field.background_mlp.parameters()) if float(background_lr_scale) != 1.0 else []
     apart = {id(p) for p in grids + background}
     others = [p for p in model.parameters() if id(p) not in apart]
     groups = [{"params": others, "lr_scale": 1.0}]
+    decayed = {id(p) for p in density}
+    grids = [p for p in grids if id(p) not in decayed]
     if grids:
         groups.append({"params": grids, "lr_scale": float(grid_lr_scale)})
+    if density:
+        groups.append({"params": density, "lr_scale": float(grid_lr_scale), "weight_decay": float(density_decay)})
     if background:
         groups.append({"params": background, "lr_scale": float(background_lr_scale),
                        "lr_after": float(background_lr_after)})
@@ -741,8 +751,9 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
 
         cameras = CameraRefinement(data.poses_scene.to(device), train_views)
     optimizer = torch.optim.Adam(parameter_groups(model, settings.grid_lr_scale, cameras, settings.lr, settings.camera_lr,
-                                                  settings.background_lr_scale, settings.background_lr_after),
-                                 lr=settings.lr, eps=1e-15,
+                                                  settings.background_lr_scale, settings.background_lr_after,
+                                                  settings.density_decay),
+                                 lr=settings.lr, eps=1e-15, decoupled_weight_decay=True,
                                  fused=device.type in ("cpu", "cuda"))
     autocast, precision = autocast_context(device, settings.precision)
     scaler = torch.amp.GradScaler("cuda") if precision == "fp16" and device.type == "cuda" else None
