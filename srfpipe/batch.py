@@ -18,6 +18,9 @@ from pathlib import Path
 
 # The per-scene artifacts in the order the workflow builds them (workflow/rules/common.smk ARTIFACTS).
 DEFAULT_CHAIN = ("poses.zarr", "images.zarr", "labels.zarr", "srf.zarr", "eval", "occupancy.zarr")
+# eval/ reads srf.zarr beside occupancy.zarr, not before it: a scene built to occupancy.zarr or sim
+# (`snakemake results/orchard/occupancy.zarr`) is done without it, and reported as not evaluated
+EVALUATION = "eval"
 
 # A stage that failed: srfpipe's one-line errors ("srfpipe poses: error: ..."), a Python traceback,
 # a process killed (out of memory). Words such as "reprojection error" in a progress line do not match.
@@ -66,6 +69,7 @@ class SceneState:
     failed_log: Path | None = None
     error: str | None = None
     metrics: dict | None = None
+    evaluated: bool = True
 
     @property
     def status(self) -> str:
@@ -76,7 +80,8 @@ class SceneState:
     def line(self, width: int = 0) -> str:
         name = self.scene.ljust(width)
         if self.status == "done":
-            extra = _metrics_text(self.metrics)
+            extra = _metrics_text(self.metrics) if self.evaluated else (
+                f"not evaluated: snakemake results/{self.scene}/{EVALUATION} scores it")
             return f"{name}  done        {self.built[-1]}" + (f"  ({extra})" if extra else "")
         reached = f"after {self.built[-1]}" if self.built else "before any artifact"
         if self.status == "FAILED":
@@ -124,14 +129,24 @@ def scene_state(scene: str, results: str | Path = "results", logs: str | Path = 
     built = []
     last_time = 0.0
     missing = None
+    evaluated = True
     for artifact in chain:
         path = folder / artifact
+        if artifact == EVALUATION and artifact != chain[-1]:
+            evaluated = path.exists()
+            continue
         if not path.exists():
             missing = artifact
             break
         built.append(artifact)
         last_time = max(last_time, path.stat().st_mtime)
-    state = SceneState(scene, built, missing)
+    state = SceneState(scene, built, missing, evaluated=evaluated)
+    if missing is None and not evaluated:
+        # the evaluation of a finished scene failed (a batch builds it), or was never asked for
+        error = _error_of(Path(logs, scene, "evaluate.log"))
+        if error:
+            state.missing, state.failed_log, state.error = EVALUATION, Path(logs, scene, "evaluate.log"), error
+        return state
     if missing is None:
         metrics = folder / "eval" / "metrics.json"
         if metrics.is_file():

@@ -105,6 +105,33 @@ def test_failing_scene_does_not_stop_the_others_and_the_summary_names_it(workflo
     assert lines[1].split()[1:3] == ["incomplete", "poses.zarr"]
 
 
+def test_a_scene_built_to_its_occupancy_cache_without_eval_is_done_and_says_it_was_not_evaluated(tmp_path):
+    """The README's first command builds results/orchard/occupancy.zarr, which needs srf.zarr and not
+    eval/: `srfpipe summary` then reports the scene done (exit 0) and how to score it, not
+    incomplete; an evaluation that failed is reported as the failure, with its log."""
+    from srfpipe.batch import DEFAULT_CHAIN, scene_state
+
+    results, logs = tmp_path / "results", tmp_path / "logs"
+    for scene in ("built", "scored", "broken"):
+        for artifact in DEFAULT_CHAIN:
+            if artifact != "eval" or scene == "scored":
+                (results / scene / artifact).mkdir(parents=True)
+    (results / "scored" / "eval" / "metrics.json").write_text(json.dumps({"psnr": 28.4, "miou": 0.8}))
+    (logs / "broken").mkdir(parents=True)
+    (logs / "broken" / "evaluate.log").write_text("srfpipe evaluate: error: results/broken/srf.zarr: no weights\n")
+    lines = summary_lines(["built", "scored", "broken"], results, logs)
+    assert lines[0].split()[1:3] == ["done", "occupancy.zarr"]
+    assert "not evaluated: snakemake results/built/eval scores it" in lines[0]
+    assert lines[1].split()[1:3] == ["done", "occupancy.zarr"] and "PSNR 28.4 dB, mIoU 0.80" in lines[1]
+    assert lines[2].split()[1:3] == ["FAILED", "eval"] and "no weights" in lines[2]
+    assert lines[3] == "scenes: 2 done, 1 failed, 0 incomplete (final artifact occupancy.zarr)"
+    # eval as the final artifact is a step like any other
+    assert scene_state("built", results, logs, DEFAULT_CHAIN[:5]).status == "incomplete"
+    # a scene stopped before srf.zarr is incomplete at that artifact, whatever eval/ holds
+    (results / "built" / "srf.zarr").rmdir()
+    assert scene_state("built", results, logs).missing == "srf.zarr"
+
+
 # ------------------------------------------------------------ what a config change re-runs
 
 def changed_outputs(workflow, *targets: str) -> list[str]:
