@@ -143,9 +143,9 @@ def scene_state(scene: str, results: str | Path = "results", logs: str | Path = 
     state = SceneState(scene, built, missing, evaluated=evaluated)
     if missing is None and not evaluated:
         # the evaluation of a finished scene failed (a batch builds it), or was never asked for
-        error = _error_of(Path(logs, scene, "evaluate.log"))
-        if error:
-            state.missing, state.failed_log, state.error = EVALUATION, Path(logs, scene, "evaluate.log"), error
+        log = Path(logs, scene, "evaluate.log")
+        if error := _error_of(log):
+            state.missing, state.failed_log, state.error = EVALUATION, log, error
         return state
     if missing is None:
         metrics = folder / "eval" / "metrics.json"

@@ -113,14 +113,14 @@ def parameter_groups(model, grid_lr_scale: float, cameras=None, lr: float = 1e-2
     supporting fades instead of staying where an early step put it."""
     grids = [m.table for m in model.modules() if type(m).__name__ == "DenseGrid"]
     field = model.field
-    density = ([p for grid in (field.inner_sigma, field.outer_sigma) if grid is not None for p in grid.parameters()
-                if any(p is g for g in grids)] if float(density_decay) > 0 and field.density_grid else [])
-    background = list(model.field.background_mlp.parameters()) if float(background_lr_scale) != 1.0 else []
+    sigma = ({id(p) for grid in (field.inner_sigma, field.outer_sigma) if grid is not None for p in grid.parameters()}
+             if float(density_decay) > 0 and field.density_grid else set())
+    background = list(field.background_mlp.parameters()) if float(background_lr_scale) != 1.0 else []
     apart = {id(p) for p in grids + background}
     others = [p for p in model.parameters() if id(p) not in apart]
     groups = [{"params": others, "lr_scale": 1.0}]
-    decayed = {id(p) for p in density}
-    grids = [p for p in grids if id(p) not in decayed]
+    density = [p for p in grids if id(p) in sigma]
+    grids = [p for p in grids if id(p) not in sigma]
     if grids:
         groups.append({"params": grids, "lr_scale": float(grid_lr_scale)})
     if density:
