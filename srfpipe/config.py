@@ -146,6 +146,10 @@ def contradictions(scene: dict) -> list[str]:
     train = scene.get("train", {})
     if "near" in train and "far" in train and train["near"] >= train["far"]:
         problems.append(f"train.near {train['near']} must be below train.far {train['far']}")
+    rays, supersample = train.get("rays_per_batch"), train.get("supersample")
+    if rays is not None and supersample and rays % (supersample * supersample):
+        problems.append(f"train.rays_per_batch {rays} must be a multiple of train.supersample^2 = "
+                        f"{supersample * supersample} (each pixel's rays come in a row)")
     return problems
 
 

@@ -389,6 +389,10 @@ class TrainSettings(SettingsSection):
     pixel_jitter: bool = False
     """true: each training ray passes through a uniformly random point of its pixel instead of its
     centre"""
+    supersample: int = 1
+    """each training pixel is rendered as the mean of s x s rays through a regular grid of points
+    over its footprint (as evaluate renders a pixel), and that mean is compared with it:
+    rays_per_batch / s^2 pixels a step. 1 = one ray through each ..."""
     background_opacity: float | None = None
     """weight of the loss on the opacity along the rays (the box and the shell beyond it) whose
     pixel shows none of the classes on an empty background (null: chosen from the data, see the

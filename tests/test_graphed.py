@@ -79,7 +79,7 @@ def train_steps(scene, device, static: bool, steps: int = 40, **options):
     folder, images, labels = scene
     settings = TrainSettings.from_options(tiny_options(iterations=steps, device=str(device), checkpoint_every=0,
                                                        cuda_graph=static, **options))
-    name = f"srf-{static}-{options.get('encoding')}-{options.get('camera_refinement')}-{options.get('pixel_jitter')}.zarr"
+    name = f"srf-{static}-" + "-".join(f"{key}-{value}" for key, value in sorted(options.items())) + ".zarr"
     run = trainer.start_run(images, labels, folder / name, settings, 5, None)
     if static and run.graphed is None:  # the CPU: the same static steps, run eagerly
         assert graph_unavailable(run) == "not on CUDA"
@@ -94,12 +94,14 @@ def train_steps(scene, device, static: bool, steps: int = 40, **options):
     return run, losses
 
 
-@pytest.mark.parametrize("encoding, refine, jitter", [("dense", False, False), ("hash", False, False),
-                                                      ("dense", True, False), ("dense", False, True)])
-def test_static_steps_train_as_the_eager_steps_do(scene, device, encoding, refine, jitter):
+@pytest.mark.parametrize("encoding, refine, jitter, supersample", [
+    ("dense", False, False, 1), ("hash", False, False, 1), ("dense", True, False, 1), ("dense", False, True, 1),
+    ("dense", False, True, 2)])
+def test_static_steps_train_as_the_eager_steps_do(scene, device, encoding, refine, jitter, supersample):
     # refine: the cameras' corrections (train.camera_refinement) are part of the recorded step;
-    # jitter: the rays' points inside their pixels (train.pixel_jitter) reach it through a static buffer
-    options = dict(encoding=encoding, camera_refinement=refine, pixel_jitter=jitter)
+    # jitter: the rays' points inside their pixels (train.pixel_jitter) reach it through a static buffer;
+    # supersample: a pixel's rays in a row, their mean compared with it (train.supersample)
+    options = dict(encoding=encoding, camera_refinement=refine, pixel_jitter=jitter, supersample=supersample)
     _, eager = train_steps(scene, device, static=False, **options)
     run, static = train_steps(scene, device, static=True, **options)
     assert (run.cameras is not None) == refine

@@ -641,3 +641,52 @@ def test_pixel_jitter_sends_each_training_ray_through_a_random_point_of_its_own_
         assert float(counts.min()) > 0.2 * offset.numel()
     again = crossings(True)
     assert torch.equal(again[0], x) and torch.equal(again[1], y)
+
+
+def test_supersampled_training_renders_each_pixel_as_evaluate_does_and_fits_its_mean():
+    """train.supersample s: a pixel's s x s rays are evaluate's rays of that pixel (`image_rays`), in
+    a row, and the photometric loss compares their mean with the pixel: rays that differ inside a
+    pixel whose mean is its colour cost nothing, where one ray through its centre would be asked
+    for the mean itself."""
+    from types import SimpleNamespace
+
+    from srfpipe.srf import losses
+    from srfpipe.srf.data import image_rays
+    from srfpipe.srf.trainer import loss_terms, sample_batch, step_generator
+    from srfpipe.settings import TrainSettings
+
+    n, h, w, s = 2, 12, 16, 2
+    k = torch.tensor([20.0, 21.0, 8.0, 6.0])
+    pose = torch.eye(4)
+    pose[:3, 3] = torch.tensor([0.3, -0.2, 0.1])
+    data = SimpleNamespace(multihot=None, probability=None, height=h, width=w, labelled=None, backdrop=None,
+                           images=torch.randint(0, 255, (n, h, w, 3), dtype=torch.uint8),
+                           poses_scene=pose.repeat(n, 1, 1), intrinsics=k.repeat(n, 1))
+    origins, directions, image, rgb, _ = sample_batch(data, np.arange(n), 400, step_generator(0, 3),
+                                                      torch.device("cpu"), supersample=s)
+    assert directions.shape[0] == 400  # rays_per_batch rays: 100 pixels of 4
+    every = image_rays(pose, k, w, h, s)[1].view(h * w, s * s, 3)
+    for pixel in range(0, 400, s * s):
+        row = directions[pixel:pixel + s * s]
+        match = (every - row).abs().amax(dim=(1, 2)) < 1e-6  # the evaluate rays of one pixel, in their order
+        assert int(match.sum()) == 1
+        v, u = divmod(int(match.nonzero()), w)
+        assert torch.equal(rgb[pixel:pixel + s * s], (data.images[image[pixel], v, u].float() / 255).expand(s * s, 3))
+
+    settings = TrainSettings.from_options({"supersample": s, "lambda_sem": 0.0})
+    target = torch.tensor([[0.2, 0.4, 0.6]]).repeat(s * s, 1)
+    spread = target + torch.tensor([[0.1], [-0.1], [0.05], [-0.05]])  # a pixel's rays differ; their mean is its colour
+    outputs = {"rgb": spread, "logits": torch.zeros(s * s, 0)}
+    labels = torch.zeros(s * s, 0)
+    assert float(loss_terms(settings, None, outputs, target, labels, None, None)["photometric"]) < 1e-12
+    centre = settings.replace(supersample=1)
+    assert float(loss_terms(centre, None, outputs, target, labels, None, None)["photometric"]) == pytest.approx(
+        float(losses.photometric_loss(spread, target)))
+
+
+def test_rays_per_batch_must_hold_whole_pixels_of_supersampled_rays():
+    from srfpipe.config import ConfigError, validate_scene
+
+    with pytest.raises(ConfigError, match="train.rays_per_batch 4098 must be a multiple of train.supersample"):
+        validate_scene({"train": {"supersample": 2, "rays_per_batch": 4098}}, "scene.yaml")
+    assert validate_scene({"train": {"supersample": 2, "rays_per_batch": 4096}}, "scene.yaml")["train"]["supersample"] == 2

@@ -298,7 +298,8 @@ class TimeBudget(Hook):
             return False
         log.info("time budget of %.0f s reached at step %d", budget, run.step)
         pixels = len(run.train_views) * run.data.width * run.data.height
-        passes = run.step * run.settings.rays_per_batch / max(pixels, 1)
+        # train.supersample: a pixel's s x s rays count once
+        passes = run.step * run.settings.rays_per_batch / run.settings.supersample ** 2 / max(pixels, 1)
         if passes < 1:
             # the budget is wall time: a machine whose cores other work shares trains fewer steps
             # (the orchard's quick start: 223 steps and 22.7 dB beside another training, 2706 and 28.6 alone)

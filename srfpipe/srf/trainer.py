@@ -210,15 +210,16 @@ def object_pixels(data, train_views, share: float, dilation_px: int = 2):
 
 
 def sample_batch(data, train_views, count: int, generator, device, focus=None, focus_share: float = 0.0,
-                 pixel_jitter: bool = False):
-    """A random batch of pixels from the training views: rays, target rgb, multi-hot labels.
+                 pixel_jitter: bool = False, supersample: int = 1):
+    """A random batch of rays from the training views' pixels: rays, target rgb, multi-hot labels.
 
     With `focus` (object_pixels' pools), round(focus_share * count) of the pixels are drawn from
     them, an equal part from each. `pixel_jitter`: each ray passes through a random point of its
-    pixel (`draw_within`), else through its centre.
+    pixel (`draw_within`), else through its centre. `supersample` s > 1: count / s^2 pixels, each
+    with s x s rays in a row (`footprint_rays`); the targets repeat for each of a pixel's rays.
     """
-    image, v, u = draw_pixels(data, train_views, count, generator, focus, focus_share)
-    within = draw_within(count, generator, data.images.device) if pixel_jitter else 0.5
+    image, v, u, within = draw_rays(data, train_views, count, generator, focus, focus_share, pixel_jitter,
+                                    supersample, data.images.device)
     origins, directions, rgb, labels = pixel_batch(data, image, v, u, within)
     return (origins.to(device), directions.to(device), image.to(device), rgb.to(device),
             None if labels is None else labels.to(device))
@@ -245,6 +246,45 @@ def draw_pixels(data, train_views, count: int, generator, focus=None, focus_shar
         image = torch.cat([image, pick // (data.height * data.width)])
         v, u = torch.cat([v, pixel // data.width]), torch.cat([u, pixel % data.width])
     return image, v, u
+
+
+def draw_rays(data, train_views, count: int, generator, focus=None, focus_share: float = 0.0,
+              pixel_jitter: bool = False, supersample: int = 1, device="cpu"):
+    """(image, v, u, within) of `count` training rays: `count` / s^2 random pixels (`draw_pixels`),
+    each with s x s rays (`footprint_rays`), through random points of their cells with
+    `pixel_jitter`, else through the cells' centres (0.5 for every ray when s is 1)."""
+    pixels = count // (supersample * supersample)
+    image, v, u = draw_pixels(data, train_views, pixels, generator, focus, focus_share)
+    within = draw_within(pixels * supersample * supersample, generator, device) if pixel_jitter else None
+    if supersample == 1:
+        return image, v, u, 0.5 if within is None else within
+    return footprint_rays(image, v, u, supersample, within)
+
+
+def footprint_rays(image, v, u, supersample: int, within=None):
+    """Each pixel's s x s rays in a row, through the centres of a regular grid of cells over its
+    footprint (as evaluate renders a pixel, `image_rays`), or through the points `within` (R, 2) of
+    the cells: (image, v, u, within) of R = pixels * s^2 rays.
+
+    Why: a pixel holds the mean of the light over its footprint, and a ray through its centre alone
+    asks the field for the centre's value. At a thin part's edge the views' pixel grids cover it
+    differently, and the field fits each training view's mixed pixels with a halo of faint matter
+    where new views see the backdrop; trained on the mean of its rays (`pixel_means`), the field can
+    keep the edge sharp and still give each pixel its share."""
+    import torch
+
+    k = supersample * supersample
+    cells = torch.arange(k, device=image.device)
+    corner = torch.stack([cells % supersample, cells // supersample], -1).float()  # (k, 2): (a, b)
+    offset = torch.full((image.shape[0] * k, 2), 0.5, device=image.device) if within is None else within
+    points = (corner.repeat(image.shape[0], 1) + offset.to(image.device)) / supersample
+    return (image.repeat_interleave(k), v.repeat_interleave(k), u.repeat_interleave(k), points)
+
+
+def pixel_means(values, supersample: int):
+    """(R, ...) per-ray values of `footprint_rays`' batches -> (R / s^2, ...) each pixel's mean."""
+    k = supersample * supersample
+    return values if k == 1 else values.view(-1, k, *values.shape[1:]).mean(dim=1)
 
 
 def draw_within(count: int, generator, device):
@@ -627,8 +667,8 @@ def training_step(run: TrainingRun, step: int):
         else:
             group["lr"] = lr
     if run.graphed is not None:
-        image, v, u = draw_pixels(run.data, run.train_views, s.rays_per_batch, generator, run.focus, s.object_rays)
-        within = draw_within(s.rays_per_batch, generator, "cpu") if s.pixel_jitter else 0.5
+        image, v, u, within = draw_rays(run.data, run.train_views, s.rays_per_batch, generator, run.focus,
+                                        s.object_rays, s.pixel_jitter, s.supersample)
         jitter = rand(s.rays_per_batch, generator, "cpu")
         try:
             terms, loss, outputs = run.graphed.step(image, v, u, jitter, within)
@@ -647,7 +687,8 @@ def training_step(run: TrainingRun, step: int):
         image, jitter = image.to(run.device), jitter.to(run.device)
     else:
         origins, directions, image, rgb, labels = sample_batch(run.data, run.train_views, s.rays_per_batch, generator,
-                                                               run.device, run.focus, s.object_rays, s.pixel_jitter)
+                                                               run.device, run.focus, s.object_rays, s.pixel_jitter,
+                                                               s.supersample)
         jitter = rand(s.rays_per_batch, generator, run.device)
     if run.cameras is not None:  # outside autocast: rays in full precision
         origins, directions = run.cameras(image, origins, directions)
@@ -676,7 +717,9 @@ def loss_terms(s: TrainSettings, model, outputs: dict, rgb, labels, valid, gener
     the `backdrop` (colour, level), Plenoxels' total variation, the size of the `cameras`' corrections)."""
     from srfpipe.srf import losses
 
-    terms = {"photometric": losses.photometric_loss(outputs["rgb"], rgb),
+    # a pixel is the mean of its rays (train.supersample; each of them carries its pixel's target)
+    terms = {"photometric": losses.photometric_loss(pixel_means(outputs["rgb"], s.supersample),
+                                                    pixel_means(rgb, s.supersample)),
              # settings not resolved against a capture (resolve_data_defaults) keep the paper's BCE
              "semantic": s.lambda_sem * losses.semantic_loss(outputs["logits"], labels, valid,
                                                              s.semantic_positive_weight or 1.0)}
@@ -719,6 +762,9 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
     from srfpipe.srf.model import SRFModel, build_model_config
 
     device = choose_device(settings.device)
+    if settings.rays_per_batch % (settings.supersample * settings.supersample):
+        raise ValueError(f"train.rays_per_batch {settings.rays_per_batch} must be a multiple of train.supersample^2 = "
+                         f"{settings.supersample * settings.supersample} (each pixel's rays come in a row)")
     # the masks' probabilities are read unless the heads are asked to train on the 0/1 labels
     data = load_posed_images(images, labels, probability=settings.semantic_targets != "labels")
     if not data.classes:
