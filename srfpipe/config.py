@@ -146,11 +146,19 @@ def contradictions(scene: dict) -> list[str]:
     train = scene.get("train", {})
     if "near" in train and "far" in train and train["near"] >= train["far"]:
         problems.append(f"train.near {train['near']} must be below train.far {train['far']}")
-    rays, supersample = train.get("rays_per_batch"), train.get("supersample")
-    if rays is not None and supersample and rays % (supersample * supersample):
-        problems.append(f"train.rays_per_batch {rays} must be a multiple of train.supersample^2 = "
-                        f"{supersample * supersample} (each pixel's rays come in a row)")
+    problem = split_pixel_problem(train.get("rays_per_batch"), train.get("supersample"))
+    if problem:
+        problems.append(problem)
     return problems
+
+
+def split_pixel_problem(rays_per_batch, supersample) -> str | None:
+    """The problem with a batch of `rays_per_batch` rays that would split a pixel's
+    `supersample`^2 rays (train.supersample), or None (either unset counts as fine)."""
+    if rays_per_batch is None or not supersample or rays_per_batch % (supersample * supersample) == 0:
+        return None
+    return (f"train.rays_per_batch {rays_per_batch} must be a multiple of train.supersample^2 = "
+            f"{supersample * supersample} (each pixel's rays come in a row)")
 
 
 def unknown_role_classes(roles: dict, prompts: list[str]) -> list[str]:

@@ -1,6 +1,7 @@
 """Trainer, srf.zarr, query API and evaluation on a tiny analytic scene (quick settings)."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -690,3 +691,10 @@ def test_rays_per_batch_must_hold_whole_pixels_of_supersampled_rays():
     with pytest.raises(ConfigError, match="train.rays_per_batch 4098 must be a multiple of train.supersample"):
         validate_scene({"train": {"supersample": 2, "rays_per_batch": 4098}}, "scene.yaml")
     assert validate_scene({"train": {"supersample": 2, "rays_per_batch": 4096}}, "scene.yaml")["train"]["supersample"] == 2
+    # settings changed after validation (replace) stop train() before it reads anything
+    from srfpipe.settings import TrainSettings
+    from srfpipe.srf.trainer import start_run
+
+    settings = TrainSettings.from_options({"supersample": 2}).replace(rays_per_batch=4098)
+    with pytest.raises(ValueError, match="train.rays_per_batch 4098 must be a multiple of train.supersample"):
+        start_run(Path("missing/images.zarr"), None, Path("missing/srf.zarr"), settings, 8, None)

@@ -222,9 +222,16 @@ def image_rays(pose: torch.Tensor, intrinsics: torch.Tensor, width: int, height:
     s x s points of a regular grid inside each pixel, (H*W*s*s, 3) with a pixel's s*s rays in a row
     (their mean is the pixel: a pixel integrates the light over its footprint)."""
     s = int(supersample)
-    v, u, j, i = torch.meshgrid(torch.arange(height), torch.arange(width), torch.arange(s), torch.arange(s),
-                                indexing="ij")
-    within = torch.stack([(i.reshape(-1) + 0.5) / s, (j.reshape(-1) + 0.5) / s], -1)
-    u, v = u.reshape(-1), v.reshape(-1)
+    v, u = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    u, v = u.reshape(-1).repeat_interleave(s * s), v.reshape(-1).repeat_interleave(s * s)
+    within = ((pixel_cells(s) + 0.5) / s).repeat(height * width, 1)
     n = u.shape[0]
     return rays_for_pixels(pose.expand(n, 4, 4), intrinsics.expand(n, 4), u, v, within)
+
+
+def pixel_cells(supersample: int, device="cpu") -> torch.Tensor:
+    """(s*s, 2) the (column, row) of each cell of a pixel's regular s x s grid, row by row: the
+    order of a pixel's rays in `image_rays` and in training's footprint rays (a point within the
+    pixel, from its corner, is (cell + offset) / s for an offset in [0, 1)^2)."""
+    cells = torch.arange(supersample * supersample, device=device)
+    return torch.stack([cells % supersample, cells // supersample], -1).float()

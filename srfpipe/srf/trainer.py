@@ -273,11 +273,11 @@ def footprint_rays(image, v, u, supersample: int, within=None):
     keep the edge sharp and still give each pixel its share."""
     import torch
 
+    from srfpipe.srf.data import pixel_cells
+
     k = supersample * supersample
-    cells = torch.arange(k, device=image.device)
-    corner = torch.stack([cells % supersample, cells // supersample], -1).float()  # (k, 2): (a, b)
     offset = torch.full((image.shape[0] * k, 2), 0.5, device=image.device) if within is None else within
-    points = (corner.repeat(image.shape[0], 1) + offset.to(image.device)) / supersample
+    points = (pixel_cells(supersample, image.device).repeat(image.shape[0], 1) + offset.to(image.device)) / supersample
     return (image.repeat_interleave(k), v.repeat_interleave(k), u.repeat_interleave(k), points)
 
 
@@ -285,6 +285,13 @@ def pixel_means(values, supersample: int):
     """(R, ...) per-ray values of `footprint_rays`' batches -> (R / s^2, ...) each pixel's mean."""
     k = supersample * supersample
     return values if k == 1 else values.view(-1, k, *values.shape[1:]).mean(dim=1)
+
+
+def pixel_targets(values, supersample: int):
+    """(R, ...) per-ray targets of `footprint_rays`' batches, a pixel's repeated on each of its
+    rays -> (R / s^2, ...) one per pixel."""
+    k = supersample * supersample
+    return values if k == 1 else values[::k]
 
 
 def draw_within(count: int, generator, device):
@@ -722,7 +729,7 @@ def loss_terms(s: TrainSettings, model, outputs: dict, rgb, labels, valid, gener
 
     # a pixel is the mean of its rays (train.supersample; each of them carries its pixel's target)
     terms = {"photometric": losses.photometric_loss(pixel_means(outputs["rgb"], s.supersample),
-                                                    pixel_means(rgb, s.supersample)),
+                                                    pixel_targets(rgb, s.supersample)),
              # settings not resolved against a capture (resolve_data_defaults) keep the paper's BCE
              "semantic": s.lambda_sem * losses.semantic_loss(outputs["logits"], labels, valid,
                                                              s.semantic_positive_weight or 1.0)}
@@ -759,15 +766,16 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
     import torch
 
     from srfpipe.artifacts import read_provenance
+    from srfpipe.config import split_pixel_problem
     from srfpipe.device import choose_device
     from srfpipe.srf.data import load_posed_images, split_views
     from srfpipe.srf.graphed import GraphedSteps, graph_unavailable
     from srfpipe.srf.model import SRFModel, build_model_config
 
     device = choose_device(settings.device)
-    if settings.rays_per_batch % (settings.supersample * settings.supersample):
-        raise ValueError(f"train.rays_per_batch {settings.rays_per_batch} must be a multiple of train.supersample^2 = "
-                         f"{settings.supersample * settings.supersample} (each pixel's rays come in a row)")
+    problem = split_pixel_problem(settings.rays_per_batch, settings.supersample)
+    if problem:  # callers of train() that skip the scene schema
+        raise ValueError(problem)
     # the masks' probabilities are read unless the heads are asked to train on the 0/1 labels
     data = load_posed_images(images, labels, probability=settings.semantic_targets != "labels")
     if not data.classes:
