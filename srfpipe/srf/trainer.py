@@ -340,7 +340,8 @@ TRUSTED_BOUNDS = ("config", "ground_truth")
 ESTIMATED_INITIAL_OPACITY = 0.001
 # weight of the background-opacity loss when the capture's background is empty (set by the plant trials).
 # 0.03 clears 40 % of a faint halo beside the plant's leaves and gains 0.25-0.30 dB at 2500 steps, but at the
-# panel's steps costs the plant 0.35 dB and plant-berry 0.27 (docs/benchmarks.md, "0.03 measured, taken back")
+# panel's steps costs the plant 0.30 dB and plant-berry 0.27 (docs/benchmarks.md, "Measured, taken back: the
+# empty-background loss at 0.03")
 EMPTY_BACKGROUND_OPACITY = 0.01
 # Mip-NeRF 360's distortion loss where the cameras stand round a subject in a scene (a room, an
 # orchard): it raised held-out PSNR on every such capture of the panel, most on those that fit
