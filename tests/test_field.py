@@ -388,3 +388,22 @@ def test_the_background_model_interpolates_a_backdrop_between_the_views_that_saw
     assert every_band["seen"] < default["seen"]  # every band fits the training views more closely ...
     assert default["new"] < 0.8 * every_band["new"], (default, every_band)  # ... and new views worse
     assert default["new"] < 0.012  # about 3 levels of 255
+
+
+def test_a_field_without_classes_renders_no_logits_and_never_runs_its_semantic_head():
+    """A capture without masks (the fox, the fern, the beer) trains colour and geometry only: the
+    semantic head's layers would otherwise run at every shaded sample for logits of width 0."""
+    options = dict(section_defaults("train"), default_cells=16, outer_resolution=8, hidden=16)
+    config = build_model_config(options, BOUNDS, scene_from_world_transform(*BOUNDS), [], 4)
+    torch.manual_seed(0)
+    model = SRFModel(config)
+    calls = []
+    model.field.semantic_mlp.register_forward_hook(lambda *args: calls.append(1))
+    origins, directions = rays()
+    out = model(origins, directions, torch.zeros(len(origins), dtype=torch.long), torch.zeros(len(origins)))
+    assert out["shaded"] > 0 and out["logits"].shape == (len(origins), 0) and not calls
+    loss = losses.total_loss(out["rgb"], torch.zeros_like(out["rgb"]), out["logits"],
+                             torch.zeros_like(out["logits"]))
+    assert float(loss["semantic"].detach()) == 0.0
+    loss["loss"].backward()
+    assert model.field.inner_sigma.table.grad.abs().sum() > 0
