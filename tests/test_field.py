@@ -17,10 +17,10 @@ from srfpipe.srf.trainer import EMPTY_BACKDROP_SH_DEGREE
 BOUNDS = np.array([[-1.0, -1.0, 0.0], [1.0, 1.0, 1.5]])
 
 
-def small_model(encoding="dense", **overrides):
+def small_model(encoding="dense", classes=("a", "b", "c"), **overrides):
     options = section_defaults("train")
     options.update(encoding=encoding, default_cells=16, outer_resolution=8, hidden=16, **overrides)
-    config = build_model_config(options, BOUNDS, scene_from_world_transform(*BOUNDS), ["a", "b", "c"], 4)
+    config = build_model_config(options, BOUNDS, scene_from_world_transform(*BOUNDS), list(classes), 4)
     torch.manual_seed(0)
     return SRFModel(config)
 
@@ -393,10 +393,7 @@ def test_the_background_model_interpolates_a_backdrop_between_the_views_that_saw
 def test_a_field_without_classes_renders_no_logits_and_never_runs_its_semantic_head():
     """A capture without masks (the fox, the fern, the beer) trains colour and geometry only: the
     semantic head's layers would otherwise run at every shaded sample for logits of width 0."""
-    options = dict(section_defaults("train"), default_cells=16, outer_resolution=8, hidden=16)
-    config = build_model_config(options, BOUNDS, scene_from_world_transform(*BOUNDS), [], 4)
-    torch.manual_seed(0)
-    model = SRFModel(config)
+    model = small_model(classes=())
     calls = []
     model.field.semantic_mlp.register_forward_hook(lambda *args: calls.append(1))
     origins, directions = rays()
