@@ -67,7 +67,6 @@ def time_steps(workdir: Path, name: str, warmup: int, steps: int, repeats: int) 
     return {"ms_per_step": timed, "loss": float(loss),
             "parameter_sum": float(sum(p.detach().double().sum() for p in run.model.parameters())),
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-            "thp_mem_alloc_enable": os.environ.get("THP_MEM_ALLOC_ENABLE"),
             "steps": warmup + repeats * steps}
 
 
