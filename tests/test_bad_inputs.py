@@ -243,6 +243,17 @@ def test_colmap_model_without_registered_images(tmp_path):
     assert_refused(lambda: import_poses(source, None, {}, out, progress=False), out, model, "no posed images")
 
 
+def test_colmap_image_listed_twice_is_refused(tmp_path):
+    """Two registered images of one name would give one image file two poses (nerfstudio and
+    Blender refuse the same), and two frames of one name downstream."""
+    write_colmap_model(tmp_path, text=True)
+    images_txt = tmp_path / "sparse" / "0" / "images.txt"
+    images_txt.write_text(images_txt.read_text().replace(" im_1.jpg", " im_0.jpg"))
+    out = tmp_path / "poses.zarr"
+    source = {"format": "colmap", "path": str(tmp_path)}
+    assert_refused(lambda: import_poses(source, None, {}, out, progress=False), out, "im_0.jpg", "listed twice")
+
+
 # ------------------------------------------------------------------------------------------ masks
 
 

@@ -16,6 +16,7 @@ from srfpipe.poses.capture import (
     Capture,
     check_image_file,
     check_pose,
+    check_unique,
     orthonormalize,
     record_missing_images,
     resolve_inside,
@@ -160,6 +161,7 @@ def read_colmap(path: str | Path, images_dir: str | None = None, model_dir: str 
             continue
         where = f"{model}: image {image.name!r}"
         relative = resolve_inside(root, f"{images_folder}/{image.name}", where, allowed_roots)
+        check_unique(image_paths + missing, relative, where)
         if not (root / relative).is_file():
             missing.append(relative)
             continue
