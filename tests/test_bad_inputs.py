@@ -254,6 +254,23 @@ def test_colmap_image_listed_twice_is_refused(tmp_path):
     assert_refused(lambda: import_poses(source, None, {}, out, progress=False), out, "im_0.jpg", "listed twice")
 
 
+def test_colmap_zero_quaternion_is_refused(tmp_path):
+    """A rotation quaternion (0, 0, 0, 0) reads as the identity rotation through Eigen: refused, not
+    imported as a camera facing along +z."""
+    write_colmap_model(tmp_path, text=True)
+    frames_txt = tmp_path / "sparse" / "0" / "frames.txt"
+    lines = frames_txt.read_text().splitlines()
+    first = next(i for i, line in enumerate(lines) if line and not line.startswith("#"))
+    fields = lines[first].split()
+    fields[2:6] = ["0", "0", "0", "0"]
+    lines[first] = " ".join(fields)
+    frames_txt.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "poses.zarr"
+    source = {"format": "colmap", "path": str(tmp_path)}
+    assert_refused(lambda: import_poses(source, None, {}, out, progress=False), out, "im_0.jpg",
+                   "quaternion")
+
+
 # ------------------------------------------------------------------------------------------ masks
 
 

@@ -168,7 +168,13 @@ def read_colmap(path: str | Path, images_dir: str | None = None, model_dir: str 
         check_image_file(root / relative, where)
         camera = reconstruction.cameras[image.camera_id]
         k, dist = colmap_camera_parameters(camera, f"{model}: camera {image.camera_id}")
-        camera_to_world = np.linalg.inv(np.vstack([image.cam_from_world().matrix(), [0.0, 0.0, 0.0, 1.0]]))
+        cam_from_world = image.cam_from_world()
+        # Eigen turns a quaternion (0, 0, 0, w) of any w, (0, 0, 0, 0) included, into the identity:
+        # a corrupt or hand-edited rotation would pass the rotation check below as a valid pose
+        norm = float(np.linalg.norm(cam_from_world.rotation.quat))
+        if not abs(norm - 1.0) <= 1e-3:
+            raise ValueError(f"{where}: rotation quaternion has norm {norm:g}, not 1 (a corrupt model file)")
+        camera_to_world = np.linalg.inv(np.vstack([cam_from_world.matrix(), [0.0, 0.0, 0.0, 1.0]]))
         check_pose(camera_to_world, where)
         image_paths.append(relative)
         poses.append(camera_to_world)
