@@ -296,6 +296,30 @@ def test_import_mask_of_the_wrong_dtype_or_channels(tmp_path):
                    "expected a single-channel")
 
 
+@pytest.mark.parametrize("escape", ["symlink", "pattern_dotdot", "pattern_absolute"])
+def test_import_mask_outside_the_mask_folder_is_refused(tmp_path, escape):
+    """Mask files stay inside segmentation.import.path, as image paths stay inside the capture:
+    a symlinked mask, or a pattern with `..` or an absolute path, reads nothing outside it."""
+    from tests.test_segment import options, red_blue_images, write_images
+
+    from srfpipe.segment.run import prompt_options, segment_images
+
+    images = write_images(tmp_path / "images.zarr", red_blue_images(n=1, width=40, height=30))
+    folder, outside = tmp_path / "masks", tmp_path / "outside"
+    folder.mkdir()
+    outside.mkdir()
+    cv2.imwrite(str(outside / "frame_00000_apple.png"), np.full((30, 40), 255, np.uint8))  # a valid mask
+    opts = prompt_options(options(backend="import", **{"import": {"path": str(folder)}}), "apple")
+    if escape == "symlink":
+        (folder / "frame_00000_apple.png").symlink_to(outside / "frame_00000_apple.png")
+    else:
+        prefix = "../outside/" if escape == "pattern_dotdot" else f"{outside}/"
+        opts["import"]["pattern"] = prefix + "{name}_{prompt}.png"
+    out = tmp_path / "apple.zarr"
+    assert_refused(lambda: segment_images(images, "apple", opts, out, progress=False), out, "frame_00000_apple.png",
+                   "outside the mask folder")
+
+
 def test_composite_refuses_masks_of_the_wrong_dtype(tmp_path):
     from tests.test_segment import blank_images
 

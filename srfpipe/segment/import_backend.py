@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Iterator
 
 import logging
+import os
 
 import numpy as np
 
@@ -40,6 +41,25 @@ def mask_filename(pattern: str, name: str, prompt: str) -> str:
         raise ValueError(
             f"segmentation.import.pattern {pattern!r}: unknown field {exc} (use {{name}}, {{stem}}, {{prompt}})"
         ) from None
+
+
+def _inside(folder: str, path: str) -> bool:
+    return os.path.commonpath([folder, path]) == folder
+
+
+def mask_path(folder: Path, filename: str, pattern: str) -> Path:
+    """`folder / filename`, refused unless it names a location inside the mask folder, lexically
+    (`..`, absolute paths in the pattern) and with symlinks resolved (a symlinked mask folder is
+    fine: the check is against where the folder itself resolves to)."""
+    folder_abs = os.path.normpath(os.path.abspath(folder))
+    full = os.path.normpath(os.path.join(folder_abs, filename))
+    if not _inside(folder_abs, full) or full == folder_abs:
+        raise ValueError(f"{folder}: mask file {filename!r} (segmentation.import.pattern {pattern!r}) points "
+                         f"outside the mask folder {folder_abs}")
+    real = os.path.realpath(full)
+    if not _inside(os.path.realpath(folder_abs), real):
+        raise ValueError(f"{full}: mask file is a symlink to {real}, outside the mask folder {folder_abs}")
+    return Path(full)
 
 
 def _read_single_channel(path: Path) -> np.ndarray:
@@ -149,7 +169,7 @@ def import_masks(
             raise ValueError(f"unknown prompt {prompt!r}: segmentation.import.values has no label value for it "
                              f"(it maps {sorted((spec.get('values') or {}))})")
         values = np.asarray([values] if isinstance(values, int) else values)
-    paths = [folder / mask_filename(pattern, name, prompt) for name in names]
+    paths = [mask_path(folder, mask_filename(pattern, name, prompt), pattern) for name in names]
     missing = [name for name, path in zip(names, paths) if not path.is_file()]
     if len(missing) == len(names):
         raise FileNotFoundError(f"{paths[0]}: mask file does not exist, nor does any other of the {len(names)} "
