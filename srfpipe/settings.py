@@ -184,8 +184,8 @@ class SegmentationImportSettings(SettingsSection):
     probabilities)"""
     pattern: str | None = None
     """file name inside path, with {name} (the image name as in images.zarr), {stem} (the name
-    without its extension) and {prompt}. null = '{stem}_{prompt}.png' for masks, '{stem}.png' for
-    labels"""
+    without an image extension such as .png, if it has one) and {prompt}. null =
+    '{stem}_{prompt}.png' for masks, '{stem}.png' for labels"""
     values: dict[str, Any] = field(default_factory=lambda: {'apple': 1, 'branch': 2, 'leaf': 3})
     """format labels, the label value(s) of each prompt's class (the paper's table by default)"""
 

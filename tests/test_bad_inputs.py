@@ -320,6 +320,27 @@ def test_import_mask_outside_the_mask_folder_is_refused(tmp_path, escape):
                    "outside the mask folder")
 
 
+def test_import_masks_of_frames_whose_names_hold_a_dot(tmp_path):
+    """Frames named like `shot.0001` (image `shot.0001.jpg`): {stem} is the whole name, not `shot`
+    (which gave every frame the one mask `shot_apple.png`, or none)."""
+    from tests.test_segment import options
+
+    from srfpipe.segment.import_backend import import_masks
+
+    names = ["shot.0001", "shot.0002"]  # images.zarr's names: the image files' stems
+    folder = tmp_path / "masks"
+    folder.mkdir()
+    left, right = np.zeros((30, 40), np.uint8), np.zeros((30, 40), np.uint8)
+    left[:, :20], right[:, 20:] = 255, 255
+    cv2.imwrite(str(folder / "shot.0001_apple.png"), left)
+    cv2.imwrite(str(folder / "shot.0002_apple.png"), right)
+    cv2.imwrite(str(folder / "shot_apple.png"), np.zeros((30, 40), np.uint8))  # not any frame's mask
+    opts = options(backend="import", **{"import": {"path": str(folder)}})
+    maps = list(import_masks(names, (40, 30), "apple", opts))
+    np.testing.assert_array_equal(maps[0], left / 255.0)
+    np.testing.assert_array_equal(maps[1], right / 255.0)
+
+
 def test_composite_refuses_masks_of_the_wrong_dtype(tmp_path):
     from tests.test_segment import blank_images
 

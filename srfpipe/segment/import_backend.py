@@ -33,8 +33,13 @@ log = logging.getLogger(__name__)
 DEFAULT_PATTERNS = {"masks": "{stem}_{prompt}.png", "labels": "{stem}.png"}
 
 
+# image names in images.zarr are the image files' stems already; {stem} drops only an image
+# extension, so a name like `shot.0001` keeps its frame number
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp", ".exr")
+
+
 def mask_filename(pattern: str, name: str, prompt: str) -> str:
-    stem = Path(name).stem if Path(name).suffix else name
+    stem = name[: -len(Path(name).suffix)] if Path(name).suffix.lower() in IMAGE_SUFFIXES else name
     try:
         return pattern.format(name=name, stem=stem, prompt=prompt)
     except (KeyError, IndexError, AttributeError, TypeError, ValueError) as exc:
