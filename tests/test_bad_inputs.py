@@ -194,6 +194,33 @@ def test_blender_duplicate_frame(tmp_path):
     assert_refused(lambda: read_blender(tmp_path), None, path, "listed twice")
 
 
+@pytest.mark.parametrize("damage, problem", [
+    ("truncate_ascii", r"truncated PLY \(60 data lines, its header declares 100 records\)"),
+    ("truncate_binary", r"truncated PLY|empty or unreadable"),
+    ("nan", r"point 7 \(of 100\) is NaN"),
+])
+def test_damaged_ply_file_path_is_refused_naming_it(tmp_path, damage, problem):
+    """nerfstudio's `ply_file_path` (the sparse points the bounds come from): Open3D reads a truncated
+    PLY with a printed warning only, the missing points garbage, and keeps NaN points."""
+    import open3d as o3d
+
+    capture(tmp_path)
+    points = np.random.default_rng(0).uniform(-0.5, 0.5, size=(100, 3))
+    if damage == "nan":
+        points[7, 1] = np.nan
+    ply = tmp_path / "sparse_pc.ply"
+    o3d.io.write_point_cloud(str(ply), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)),
+                             write_ascii=damage == "truncate_ascii")
+    if damage == "truncate_ascii":  # Open3D reads it as 100 points, the last 40 garbage
+        header, _, body = ply.read_text().partition("end_header\n")
+        ply.write_text(header + "end_header\n" + "".join(body.splitlines(keepends=True)[:60]))
+    elif damage == "truncate_binary":
+        ply.write_bytes(ply.read_bytes()[:-1000])
+    edit_transforms(tmp_path, lambda d: d.update(ply_file_path="sparse_pc.ply"))
+    out = tmp_path / "poses.zarr"
+    assert_refused(lambda: import_poses(NERFSTUDIO, tmp_path, {}, out, progress=False), out, ply, problem)
+
+
 # ------------------------------------------------------------------------------------------ COLMAP
 
 

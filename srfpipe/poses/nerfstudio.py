@@ -16,6 +16,7 @@ from srfpipe import cameras
 from srfpipe.poses.capture import (
     Capture,
     MAX_IMAGE_SIDE,
+    MAX_VALUE,
     check_image_file,
     check_unique,
     load_json,
@@ -134,13 +135,51 @@ def read_nerfstudio(path: str | Path, source_format: str = "nerfstudio", allowed
     )
 
 
+PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+             "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
+def _check_ply_complete(path: Path) -> None:
+    """Raise ValueError when a PLY file holds fewer records than its header declares: Open3D reads a
+    truncated file with only a printed warning, the missing points zeros or garbage."""
+    data = path.read_bytes()
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise ValueError(f"{path}: not a PLY file (no ply ... end_header header)")
+    header = data[:end].decode("ascii", errors="replace").splitlines()
+    body = data[data.index(b"\n", end) + 1:] if b"\n" in data[end:] else b""
+    fmt, elements = None, []  # [count, record size in bytes or None for list properties]
+    for line in header:
+        words = line.split()
+        if words[:1] == ["format"] and len(words) > 1:
+            fmt = words[1]
+        elif words[:1] == ["element"] and len(words) == 3 and words[2].isdigit():
+            elements.append([int(words[2]), 0])
+        elif words[:1] == ["property"] and elements and elements[-1][1] is not None:
+            size = PLY_SIZES.get(words[1]) if len(words) == 3 else None  # a list property: size varies
+            elements[-1][1] = None if size is None else elements[-1][1] + size
+    if fmt == "ascii":
+        records = sum(count for count, _ in elements)
+        lines = len([line for line in body.splitlines() if line.strip()])  # one record a line
+        if lines < records:
+            raise ValueError(f"{path}: truncated PLY ({lines} data lines, its header declares {records} records)")
+    elif fmt in ("binary_little_endian", "binary_big_endian") and all(size is not None for _, size in elements):
+        expected = sum(count * size for count, size in elements)
+        if len(body) < expected:
+            raise ValueError(f"{path}: truncated PLY ({len(body)} bytes of data, its header declares {expected})")
+
+
 def _read_ply_points(path: Path) -> np.ndarray:
     import open3d as o3d
 
     if not path.is_file():
         raise FileNotFoundError(f"{path}: point cloud (ply_file_path) does not exist")
+    _check_ply_complete(path)
     cloud = o3d.io.read_point_cloud(str(path))
     points = np.asarray(cloud.points, dtype=np.float64)
     if len(points) == 0:
         raise ValueError(f"{path}: point cloud is empty or unreadable")
+    bad = np.flatnonzero(~np.all(np.isfinite(points) & (np.abs(points) <= MAX_VALUE), axis=1))
+    if len(bad):
+        raise ValueError(f"{path}: point {bad[0]} (of {len(points)}) is NaN, infinite or above {MAX_VALUE:g}")
     return points
