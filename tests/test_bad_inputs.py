@@ -124,8 +124,13 @@ def test_bad_transform_matrix(tmp_path, matrix, problem):
     (lambda d: d.update(frames=[]), "transforms.json", "'frames' must be a non-empty list"),
     (lambda d: d.update(frames={"0": {}}), "transforms.json", "'frames' must be a non-empty list"),
     (lambda d: d["frames"].__setitem__(1, "images/frame_00001.png"), "frames[1]", "needs 'file_path'"),
+    (lambda d: d["frames"][1].update(file_path="images/a\x00b.png"), "frames[1]", "holds a NUL character"),
+    (lambda d: d.update(applied_transform=[["a"] * 4] * 3), "applied_transform", "must be a finite 3x4 or 4x4"),
+    (lambda d: d.update(applied_transform=[[1, 0, 0, 0], [0, 1, 0], [0, 0, 1, 0]]), "applied_transform",
+     "must be a finite 3x4 or 4x4"),
 ], ids=["no_file_path", "no_transform", "duplicate_file_path", "file_path_int", "file_path_empty",
-        "focal_string", "focal_huge", "width_huge", "cx_bool", "empty_frames", "frames_dict", "frame_string"])
+        "focal_string", "focal_huge", "width_huge", "cx_bool", "empty_frames", "frames_dict", "frame_string",
+        "file_path_nul", "applied_transform_strings", "applied_transform_ragged"])
 def test_bad_transforms_json(tmp_path, edit, where, problem):
     path = edit_transforms(capture(tmp_path), edit)
     out = tmp_path / "poses.zarr"

@@ -88,6 +88,8 @@ def resolve_inside(root: Path, file_path: str, referenced_from: Path | str, allo
     """
     if not isinstance(file_path, str) or not file_path:
         raise ValueError(f"{referenced_from}: file_path must be a non-empty string, got {file_path!r}")
+    if "\0" in file_path:
+        raise ValueError(f"{referenced_from}: file_path {file_path!r} holds a NUL character")
     root_abs = os.path.normpath(os.path.abspath(root))
     full = os.path.normpath(os.path.join(root_abs, os.path.expanduser(file_path)))
     if not _inside(root_abs, full) or full == root_abs:

@@ -66,7 +66,10 @@ def _frame_intrinsics(meta: dict, frame: dict, image: Path, where: str):
 
 def _similarity_4x4(matrix, where: str) -> np.ndarray:
     """A 3x4/4x4 similarity (rotation times uniform scale, translation) as 4x4, checked."""
-    transform = np.asarray(matrix, dtype=np.float64)
+    try:
+        transform = np.asarray(matrix, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{where}: must be a finite 3x4 or 4x4 matrix ({exc})") from None
     if transform.shape == (3, 4):
         transform = np.vstack([transform, [0.0, 0.0, 0.0, 1.0]])
     if transform.shape != (4, 4) or not np.all(np.isfinite(transform)):
