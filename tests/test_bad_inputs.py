@@ -778,3 +778,40 @@ def test_stage_cli_refuses_an_output_over_its_input(tmp_path, capsys, argv, how)
     assert len(err.strip().splitlines()) == 1 and "writing it would destroy the input" in err
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
     open_artifact(poses, stage="poses")
+
+
+# ------------------------------------------------------------------ audit: arrays a stage read unchecked
+
+
+def _replace_array(artifact: Path, key: str, data: np.ndarray) -> None:
+    """Replace one array of an artifact and reseal it: a consistent artifact, wrongly shaped."""
+    import zarr
+
+    from srfpipe.artifacts import reseal_artifact
+
+    group = zarr.open_group(str(artifact), mode="r+")
+    del group[key]
+    group.create_array(key, data=data)
+    reseal_artifact(artifact)
+
+
+@pytest.mark.parametrize("case", ["label frames", "label dtype", "ground truth frames"])
+def test_labels_and_ground_truth_of_the_wrong_shape_are_refused_naming_the_file(tmp_path, case):
+    """labels.zarr `label` and images.zarr `ground_truth/labels` were read without a check: fewer
+    frames than the images ended evaluate in an IndexError, a float label ended train in one."""
+    from srfpipe.srf.data import load_posed_images
+    from srfpipe.srf.synthetic import write_labels, write_scene
+
+    images, labels = write_scene(tmp_path, views=4, width=12, height=8)
+    if case == "label frames":
+        target, key, data = labels, "label", np.zeros((3, 8, 12), np.uint8)
+    elif case == "label dtype":
+        target, key, data = labels, "label", np.zeros((4, 8, 12), np.float32)
+    else:
+        target, key, data = images, "ground_truth/labels", np.zeros((3, 8, 12), np.uint8)
+    _replace_array(target, key, data)
+    if target == images:  # labels.zarr records the images' fingerprint: make it this one's again
+        labels = write_labels(tmp_path / "labels2.zarr", np.zeros((4, 8, 12), np.uint8), ["a"],
+                              [f"frame_{i:05d}" for i in range(4)], inputs=[images])
+    with pytest.raises(ValueError, match=rf"{re.escape(str(target))}: {key} must be \(4, 8, 12\) uint8.*got"):
+        load_posed_images(images, labels)
