@@ -815,3 +815,36 @@ def test_labels_and_ground_truth_of_the_wrong_shape_are_refused_naming_the_file(
                               [f"frame_{i:05d}" for i in range(4)], inputs=[images])
     with pytest.raises(ValueError, match=rf"{re.escape(str(target))}: {key} must be \(4, 8, 12\) uint8.*got"):
         load_posed_images(images, labels)
+
+
+@pytest.mark.parametrize("key, value, problem", [
+    ("model_config", None, "model_config is missing"),
+    ("classes", None, "classes is missing"),
+    ("classes", ["apple"], r"classes names 1 classes \['apple'\], the model has \d+ semantic heads"),
+    ("scene_from_world", None, "scene_from_world is missing"),
+    ("bounds_world", [[0, 0, 0]], "bounds_world is missing or not a finite 2x3"),
+    ("scene_scale", "x", "scene_scale must be a positive number"),
+    ("model_config", {"hidden": 8}, "model_config does not describe a model"),
+])
+def test_a_field_with_missing_or_wrong_attributes_is_refused_naming_it(tmp_path, tiny_field, key, value, problem):
+    """srf.zarr's attributes were read with `attrs[key]`: one missing ended distill, evaluate and
+    package in a KeyError traceback, a class list of the wrong length in a numpy broadcast error."""
+    import shutil
+
+    import zarr
+
+    from srfpipe.artifacts import NAMESPACE, reseal_artifact
+    from srfpipe.srf.io import read_srf
+
+    path = tmp_path / "srf.zarr"
+    shutil.copytree(tiny_field.path, path)
+    group = zarr.open_group(str(path), mode="r+")
+    attrs = dict(group.attrs[NAMESPACE])
+    if value is None:
+        del attrs[key]
+    else:
+        attrs[key] = value
+    group.attrs[NAMESPACE] = attrs
+    reseal_artifact(path)
+    with pytest.raises(ValueError, match=rf"{re.escape(str(path))}: attribute {problem}.*re-run its stage 'train'"):
+        read_srf(path)
