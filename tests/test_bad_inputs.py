@@ -848,3 +848,37 @@ def test_a_field_with_missing_or_wrong_attributes_is_refused_naming_it(tmp_path,
     reseal_artifact(path)
     with pytest.raises(ValueError, match=rf"{re.escape(str(path))}: attribute {problem}.*re-run its stage 'train'"):
         read_srf(path)
+
+
+@pytest.mark.parametrize("case", ["occupancy frames", "no distance", "no grid", "no classes"])
+def test_an_occupancy_cache_with_missing_or_wrong_parts_is_refused_naming_it(tmp_path, case):
+    """occupancy.zarr's attributes and arrays were read with `attrs[key]` / `group[key]`: one missing
+    ended package and OccupancyCache.load in a KeyError traceback, and an occupancy grid of the wrong
+    shape was packaged without a word."""
+    import zarr
+
+    from srfpipe.artifacts import NAMESPACE, reseal_artifact
+    from srfpipe.occupancy import AnalyticField, OccupancyCache, distill
+    from srfpipe.sim.package import read_scene
+
+    tree = AnalyticField(["apple", "branch"], np.array([[-0.5, -0.5, 0.0], [0.5, 0.5, 1.0]]), sigma=1000.0)
+    tree.add_sphere((0.0, 0.0, 0.5), 0.2, "apple")
+    path = distill(tree, tmp_path / "occupancy.zarr", {"voxel_size": 0.1, "avoid": ["branch"], "reach": ["apple"]},
+                   progress=False)
+    group = zarr.open_group(str(path), mode="r+")
+    if case == "occupancy frames":
+        _replace_array(path, "occupancy", np.zeros((2, 2, 2), np.uint8))
+        problem = r"array 'occupancy' has shape \(2, 2, 2\), the grid and classes need"
+    elif case == "no distance":
+        del group["distance"]
+        reseal_artifact(path)
+        problem = "missing array 'distance'"
+    else:
+        attrs = dict(group.attrs[NAMESPACE])
+        del attrs[case.removeprefix("no ")]
+        group.attrs[NAMESPACE] = attrs
+        reseal_artifact(path)
+        problem = f"attribute {case.removeprefix('no ')} is missing"
+    for read in (lambda: OccupancyCache.load(path), lambda: read_scene(path, None, {})):
+        with pytest.raises(ValueError, match=rf"{re.escape(str(path))}: {problem}.*re-run its stage 'distill'"):
+            read()
