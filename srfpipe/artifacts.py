@@ -190,15 +190,43 @@ def remove_stale_siblings(path: str | Path) -> list[Path]:
     return removed
 
 
+# What an earlier output of a stage holds at its top (any of them): a Zarr group (an artifact, even a
+# damaged one or one of another schema), its manifest, eval/'s metrics, sim/'s manifest, a generated
+# capture's ground truth, a video's frames record. Anything else at an output path is not replaced.
+OUTPUT_MARKERS = (_ZARR_JSON, MANIFEST_NAME, "metrics.json", "scene.json", "ground_truth/scene.json", "frames.json")
+
+
+def check_replaceable(path: str | Path) -> None:
+    """Refuse (FileExistsError naming `path`) an output path that holds something no stage wrote:
+    a plain file, or a folder that is not empty and holds none of OUTPUT_MARKERS (`--out data/`
+    would otherwise be deleted and replaced by the artifact). A missing path, an empty folder and an
+    earlier output (complete or not) may be replaced."""
+    path = Path(path)
+    if not os.path.lexists(path):
+        return
+    if path.is_dir():
+        if any(os.path.lexists(path / marker) for marker in OUTPUT_MARKERS):
+            return
+        if not any(name != ".snakemake_timestamp" for name in os.listdir(path)):
+            return
+        what = "a folder that holds no srfpipe output"
+    else:
+        what = "a file, not a folder"
+    raise FileExistsError(errno.EEXIST, f"the output path exists and is {what}; the stage would delete and "
+                          "replace it: remove it yourself or choose another output path", str(path))
+
+
 @contextmanager
 def atomic_directory(path: str | Path) -> Iterator[Path]:
     """Yield a hidden temporary sibling of `path` to fill; it becomes `path` only on success.
 
     An older `path` is moved aside first and deleted after the rename, so a failed re-run leaves
     the previous output intact and an interrupted one leaves nothing that looks complete. The
-    hidden names carry host and pid, so a later run removes those of a killed process.
+    hidden names carry host and pid, so a later run removes those of a killed process. A `path`
+    that holds something no stage wrote is refused (`check_replaceable`), never replaced.
     """
     path = Path(path)
+    check_replaceable(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_siblings(path)
     tmp = path.with_name(f".{path.name}.partial-{_owner_tag()}-{uuid.uuid4().hex[:8]}")

@@ -189,6 +189,8 @@ def load_scene(path: str | Path) -> dict:
         scene = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML ({exc})") from exc
+    except UnicodeDecodeError as exc:  # a binary or non-UTF-8 file: the decoder names no file
+        raise ConfigError(f"{path}: not valid YAML (not UTF-8 text: {exc})") from exc
     return validate_scene(scene, str(path), whole=True)
 
 

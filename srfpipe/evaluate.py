@@ -132,7 +132,7 @@ def evaluate(images, labels, srf, out, options: dict, device="auto") -> dict:
     field = SemanticRadianceField.load(srf, device)
     data = load_posed_images(images, labels)
     curves = (read_curve(srf, "curve"), read_curve(srf, "eval_curve"))
-    return evaluate_field(field, data, out, options, labels, srf, curves)
+    return evaluate_field(field, data, out, options, labels, srf, curves, images=images)
 
 
 # a held-out view rendered with supersampling stays within this many rays: views of up to 256 x 256
@@ -186,7 +186,7 @@ def pooled_psnr(renders: list[np.ndarray], targets: list[np.ndarray]) -> float:
                         np.concatenate([t.reshape(-1, 3) for t in targets]))
 
 
-def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) -> dict:
+def evaluate_field(field, data, out, options: dict, labels, srf, curves=None, images=None) -> dict:
     """Metrics and renders of `field` on the held-out views of `data` (`PosedImages`), into `out`.
 
     `field` needs `classes`, `attrs` (holdout_every, train_seconds) and
@@ -194,6 +194,9 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
     to the world through `data`'s own scene frame, so a field of another build measures them too); `labels`
     and `srf` are the paths the data and the field came from (for messages and the record).
     `curves`, srf.zarr's (curve, eval_curve), adds the training curve (`training_curve.svg`).
+    metrics.json records its provenance under `srfpipe` (stage evaluate, the options used, the
+    inputs `images` (the images.zarr path, when given), `labels` and `srf` with their fingerprints,
+    versions), as every artifact does.
     `options` is the `evaluate` section (holdout_every: the field's when not given).
     `evaluate.train_views` training views are rendered the same way
     for `train_view_psnr`, `generalization_gap_db` and `overfit` (see GENERALIZATION_GAP_DB).
@@ -205,7 +208,7 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
 
     import cv2
 
-    from srfpipe.artifacts import atomic_directory, meta, open_artifact
+    from srfpipe.artifacts import atomic_directory, meta, open_artifact, provenance
     from srfpipe.srf.data import split_views
 
     out = Path(out)
@@ -262,7 +265,9 @@ def evaluate_field(field, data, out, options: dict, labels, srf, curves=None) ->
             result.update(unlabelled_view_scores(data, render_view, train, settings.unlabelled_views))
         result.update({"label_source": str(labels), "srf": str(srf), "train_seconds": field.attrs.get("train_seconds"),
                        "per_view": scores.per_view})
-        (tmp / "metrics.json").write_text(json.dumps(_clean(result), indent=2))
+        record = provenance("evaluate", {**settings.as_dict(), "supersample": supersample},
+                            [p for p in (images, labels, srf) if p is not None], complete=True)
+        (tmp / "metrics.json").write_text(json.dumps(_clean({**result, "srfpipe": record}), indent=2))
         (tmp / "metrics.html").write_text(metrics_html(_clean(result), title=f"held-out views of {srf}"))
         if curves is not None and len(curves[0].get("step", [])):
             (tmp / "training_curve.svg").write_text(training_curve_svg(*curves))

@@ -45,6 +45,29 @@ def test_interrupted_stage_leaves_nothing(tmp_path):
 
 
 @pytest.mark.bad_input
+def test_an_output_path_holding_something_else_is_refused_not_replaced(tmp_path):
+    """`--out data/` (a folder of the user's) or `--out notes.txt` is refused, naming the path, and
+    left as it was; an earlier artifact, an empty folder and a missing path are written over."""
+    folder = tmp_path / "data"
+    folder.mkdir()
+    (folder / "keep.txt").write_text("precious")
+    plain = tmp_path / "notes.zarr"
+    plain.write_text("precious")
+    for path in (folder, plain):
+        with pytest.raises(FileExistsError, match=f"exists and is .*choose another output path.*{path.name}"):
+            with create_artifact(path, "demo") as group:
+                group.create_array("x", data=np.zeros(3))
+    assert (folder / "keep.txt").read_text() == "precious" and plain.read_text() == "precious"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "notes.zarr"]  # no partial left
+    empty = tmp_path / "empty.zarr"
+    empty.mkdir()
+    for path in (empty, empty, tmp_path / "new.zarr"):  # the second time over an earlier artifact
+        with create_artifact(path, "demo") as group:
+            group.create_array("x", data=np.ones(2))
+        open_artifact(path, stage="demo")
+
+
+@pytest.mark.bad_input
 def test_wrong_stage_and_missing_artifact_are_clear(tmp_path):
     path = tmp_path / "a.zarr"
     with create_artifact(path, "poses"):

@@ -883,3 +883,107 @@ def test_stage_cli_refuses_an_output_over_its_input(tmp_path, capsys, argv, how)
     assert len(err.strip().splitlines()) == 1 and "writing it would destroy the input" in err
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
     open_artifact(poses, stage="poses")
+
+
+# ------------------------------------------------------------------ audit: arrays a stage read unchecked
+
+
+def _replace_array(artifact: Path, key: str, data: np.ndarray) -> None:
+    """Replace one array of an artifact and reseal it: a consistent artifact, wrongly shaped."""
+    import zarr
+
+    from srfpipe.artifacts import reseal_artifact
+
+    group = zarr.open_group(str(artifact), mode="r+")
+    del group[key]
+    group.create_array(key, data=data)
+    reseal_artifact(artifact)
+
+
+@pytest.mark.parametrize("case", ["label frames", "label dtype", "ground truth frames"])
+def test_labels_and_ground_truth_of_the_wrong_shape_are_refused_naming_the_file(tmp_path, case):
+    """labels.zarr `label` and images.zarr `ground_truth/labels` were read without a check: fewer
+    frames than the images ended evaluate in an IndexError, a float label ended train in one."""
+    from srfpipe.srf.data import load_posed_images
+    from srfpipe.srf.synthetic import write_labels, write_scene
+
+    images, labels = write_scene(tmp_path, views=4, width=12, height=8)
+    if case == "label frames":
+        target, key, data = labels, "label", np.zeros((3, 8, 12), np.uint8)
+    elif case == "label dtype":
+        target, key, data = labels, "label", np.zeros((4, 8, 12), np.float32)
+    else:
+        target, key, data = images, "ground_truth/labels", np.zeros((3, 8, 12), np.uint8)
+    _replace_array(target, key, data)
+    if target == images:  # labels.zarr records the images' fingerprint: make it this one's again
+        labels = write_labels(tmp_path / "labels2.zarr", np.zeros((4, 8, 12), np.uint8), ["a"],
+                              [f"frame_{i:05d}" for i in range(4)], inputs=[images])
+    with pytest.raises(ValueError, match=rf"{re.escape(str(target))}: {key} must be \(4, 8, 12\) uint8.*got"):
+        load_posed_images(images, labels)
+
+
+@pytest.mark.parametrize("key, value, problem", [
+    ("model_config", None, "model_config is missing"),
+    ("classes", None, "classes is missing"),
+    ("classes", ["apple"], r"classes names 1 classes \['apple'\], the model has \d+ semantic heads"),
+    ("scene_from_world", None, "scene_from_world is missing"),
+    ("bounds_world", [[0, 0, 0]], "bounds_world is missing or not a finite 2x3"),
+    ("scene_scale", "x", "scene_scale must be a positive number"),
+    ("model_config", {"hidden": 8}, "model_config does not describe a model"),
+])
+def test_a_field_with_missing_or_wrong_attributes_is_refused_naming_it(tmp_path, tiny_field, key, value, problem):
+    """srf.zarr's attributes were read with `attrs[key]`: one missing ended distill, evaluate and
+    package in a KeyError traceback, a class list of the wrong length in a numpy broadcast error."""
+    import shutil
+
+    import zarr
+
+    from srfpipe.artifacts import NAMESPACE, reseal_artifact
+    from srfpipe.srf.io import read_srf
+
+    path = tmp_path / "srf.zarr"
+    shutil.copytree(tiny_field.path, path)
+    group = zarr.open_group(str(path), mode="r+")
+    attrs = dict(group.attrs[NAMESPACE])
+    if value is None:
+        del attrs[key]
+    else:
+        attrs[key] = value
+    group.attrs[NAMESPACE] = attrs
+    reseal_artifact(path)
+    with pytest.raises(ValueError, match=rf"{re.escape(str(path))}: attribute {problem}.*re-run its stage 'train'"):
+        read_srf(path)
+
+
+@pytest.mark.parametrize("case", ["occupancy frames", "no distance", "no grid", "no classes"])
+def test_an_occupancy_cache_with_missing_or_wrong_parts_is_refused_naming_it(tmp_path, case):
+    """occupancy.zarr's attributes and arrays were read with `attrs[key]` / `group[key]`: one missing
+    ended package and OccupancyCache.load in a KeyError traceback, and an occupancy grid of the wrong
+    shape was packaged without a word."""
+    import zarr
+
+    from srfpipe.artifacts import NAMESPACE, reseal_artifact
+    from srfpipe.occupancy import AnalyticField, OccupancyCache, distill
+    from srfpipe.sim.package import read_scene
+
+    tree = AnalyticField(["apple", "branch"], np.array([[-0.5, -0.5, 0.0], [0.5, 0.5, 1.0]]), sigma=1000.0)
+    tree.add_sphere((0.0, 0.0, 0.5), 0.2, "apple")
+    path = distill(tree, tmp_path / "occupancy.zarr", {"voxel_size": 0.1, "avoid": ["branch"], "reach": ["apple"]},
+                   progress=False)
+    group = zarr.open_group(str(path), mode="r+")
+    if case == "occupancy frames":
+        _replace_array(path, "occupancy", np.zeros((2, 2, 2), np.uint8))
+        problem = r"array 'occupancy' has shape \(2, 2, 2\), the grid and classes need"
+    elif case == "no distance":
+        del group["distance"]
+        reseal_artifact(path)
+        problem = "missing array 'distance'"
+    else:
+        attrs = dict(group.attrs[NAMESPACE])
+        del attrs[case.removeprefix("no ")]
+        group.attrs[NAMESPACE] = attrs
+        reseal_artifact(path)
+        problem = f"attribute {case.removeprefix('no ')} is missing"
+    for read in (lambda: OccupancyCache.load(path), lambda: read_scene(path, None, {})):
+        with pytest.raises(ValueError, match=rf"{re.escape(str(path))}: {problem}.*re-run its stage 'distill'"):
+            read()

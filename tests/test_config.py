@@ -53,6 +53,16 @@ def test_missing_scene_file(tmp_path):
         load_scene(tmp_path / "nope.yaml")
 
 
+@pytest.mark.bad_input
+def test_a_binary_scene_file_is_a_clear_error(tmp_path):
+    """A scene file that is not UTF-8 text ended in a UnicodeDecodeError naming no file (a
+    traceback in Snakemake)."""
+    path = tmp_path / "bin.yaml"
+    path.write_bytes(b"\xff\xfe\x00train: {}")
+    with pytest.raises(ConfigError, match=r"bin.yaml: not valid YAML \(not UTF-8 text"):
+        load_scene(path)
+
+
 def test_section_defaults():
     assert section_defaults("poses")["refine"] == "none"
 

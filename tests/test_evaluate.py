@@ -328,3 +328,21 @@ def test_the_masks_own_agreement_with_the_truth_is_reported_apart_from_the_field
     assert damaged["iou_masks_gt"][data.classes[missed - 1]] == 0
     assert damaged["miou_masks_gt_classes"] < exact["miou_masks_gt_classes"] - 0.3
     assert damaged["miou_gt"] == pytest.approx(exact["miou_gt"])
+
+
+def test_metrics_json_records_its_provenance(scene):
+    """eval/ is an artifact like the others: metrics.json records the stage, the options it used,
+    its inputs with their fingerprints and the versions (it recorded none)."""
+    from srfpipe.artifacts import fingerprint
+
+    folder, images, labels = scene
+    out = folder / "eval_provenance"
+    evaluate_field(ExactField(images, synthetic.CLASSES), load_posed_images(images, labels), out, CENTRES, labels,
+                   "exact", images=images)
+    record = json.loads((out / "metrics.json").read_text())["srfpipe"]
+    assert record["stage"] == "evaluate" and record["complete"] and record["schema_version"] == 1
+    assert record["config"]["holdout_every"] == HOLDOUT and record["config"]["supersample"] >= 1
+    assert record["versions"]["srfpipe"] and record["versions"]["numpy"]
+    recorded = {entry["path"]: entry for entry in record["inputs"]}
+    assert recorded[str(images)]["manifest_sha256"] == fingerprint(images)
+    assert recorded[str(labels)]["stage"] == "composite" and "exact" in recorded

@@ -254,3 +254,11 @@ def test_failed_run_leaves_old_output_untouched(tmp_path, monkeypatch):
     generate_orchard(out, progress=False, seed=2, **small)  # a rerun replaces the old capture
     assert (out / "ground_truth" / "apples.json").read_text() != before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["capture"]
+
+
+def test_python_dash_m_srfpipe_is_the_srfpipe_command():
+    """`python -m srfpipe` (no console script on PATH, a checkout on PYTHONPATH) ran nothing: the
+    package had no __main__."""
+    result = subprocess.run([sys.executable, "-m", "srfpipe", "summary", "--help"],
+                            capture_output=True, text=True, check=True)
+    assert "usage: srfpipe summary" in result.stdout

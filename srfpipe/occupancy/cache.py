@@ -38,6 +38,38 @@ def _check_nan(bad: int, total: int, what: str = "points") -> None:
         raise ValueError(f"{bad} of {total} {what} have NaN coordinates")
 
 
+def check_cache(path, group, attrs: dict) -> VoxelGrid:
+    """The grid of an opened occupancy.zarr, after checking what its readers (`OccupancyCache.load`,
+    the simulator package) take from it: the attributes `grid`, `classes`, `distance` and the voxel
+    arrays of the grid's shape, one channel per class or distance class. ValueError naming the file."""
+    def refuse(problem: str) -> ValueError:
+        return ValueError(f"{path}: {problem}; the artifact is damaged: delete it and re-run its stage '{STAGE}'")
+
+    try:
+        grid = VoxelGrid.from_attrs(attrs["grid"])
+        if len(grid.origin) != 3 or len(grid.shape) != 3 or not grid.voxel_size > 0 or min(grid.shape) < 1:
+            raise ValueError("origin, voxel_size or shape out of range")
+    except (KeyError, TypeError, ValueError) as exc:
+        raise refuse(f"attribute grid is missing or invalid ({type(exc).__name__}: {exc})") from None
+    classes = attrs.get("classes")
+    if not isinstance(classes, list) or not all(isinstance(c, str) for c in classes):
+        raise refuse("attribute classes is missing or not a list of names")
+    distance = attrs.get("distance")
+    if (not isinstance(distance, dict) or not isinstance(distance.get("classes"), list)
+            or not isinstance(distance.get("roles"), list) or len(distance["classes"]) != len(distance["roles"])
+            or not set(distance["classes"]) <= set(classes)):
+        raise refuse(f"attribute distance must name classes of {classes} and one role each, got {distance!r}")
+    shape = tuple(grid.shape)
+    for key, channels in (("occupancy", None), ("density", None), ("probability", len(classes)),
+                          ("class_occupancy", len(classes)), ("distance", len(distance["classes"]))):
+        if key not in group:
+            raise refuse(f"missing array '{key}'")
+        want = shape if channels is None else (channels, *shape)
+        if tuple(group[key].shape) != want:
+            raise refuse(f"array '{key}' has shape {tuple(group[key].shape)}, the grid and classes need {want}")
+    return grid
+
+
 class OccupancyCache:
     """The arrays of one `occupancy.zarr`, loaded into memory. Build with `OccupancyCache.load`."""
 
@@ -72,7 +104,7 @@ class OccupancyCache:
 
         group = open_artifact(path, stage=STAGE)
         attrs = meta(group)
-        grid = VoxelGrid.from_attrs(attrs["grid"])
+        grid = check_cache(path, group, attrs)
         classes = list(attrs["classes"])
         distance = group["distance"][...]
         distance_fields = {name: distance[i] for i, name in enumerate(attrs["distance"]["classes"])}

@@ -361,10 +361,11 @@ def read_scene(occupancy_path: Path, srf_path: Path | None, options: dict, image
     """Open the occupancy cache (checked; the trained field's artifact too, when given: the runtime
     renders from it), its classes and roles (avoid / reach), the capture's ground truth and the unit."""
     from srfpipe.artifacts import meta, open_artifact, recorded_input, require_input
-    from srfpipe.occupancy.grid import VoxelGrid
+    from srfpipe.occupancy.cache import check_cache
 
     group = open_artifact(occupancy_path, stage="distill")
     attrs = meta(group)
+    grid = check_cache(occupancy_path, group, attrs)
     if srf_path is not None:  # checked: the runtime renders from it (without it: contact only, no views)
         open_artifact(srf_path, stage="train")
         # one scene: the field the cache was distilled from, and the images that field was trained on
@@ -377,7 +378,7 @@ def read_scene(occupancy_path: Path, srf_path: Path | None, options: dict, image
     roles = dict(zip(attrs["distance"]["classes"], attrs["distance"]["roles"]))
     gt_folder, gt_scene = read_ground_truth(Path(images_path) if images_path else None)
     units = resolve_unit(options, attrs.get("unit"), gt_scene)
-    return SceneInputs(group, attrs, VoxelGrid.from_attrs(attrs["grid"]), list(attrs["classes"]),
+    return SceneInputs(group, attrs, grid, list(attrs["classes"]),
                        [c for c, r in roles.items() if r == "avoid"], [c for c, r in roles.items() if r == "reach"],
                        gt_folder, gt_scene, units, np.asarray(group["occupancy"][...], dtype=bool),
                        np.asarray(group["class_occupancy"][...], dtype=bool))

@@ -122,6 +122,9 @@ def load_posed_images(images_path, labels_path=None, probability: bool = False) 
     gt_label = gt_classes = None
     if "ground_truth" in group and "labels" in group["ground_truth"]:
         gt_label = np.asarray(group["ground_truth"]["labels"][...])
+        if gt_label.shape != (n, h, w) or gt_label.dtype != np.uint8:
+            raise ValueError(f"{images_path}: ground_truth/labels must be ({n}, {h}, {w}) uint8 like its {n} images of "
+                             f"{w}x{h}, got {gt_label.shape} {gt_label.dtype}")
         # images.zarr written before the downscale stage recorded the names are all orchards
         gt_classes = [str(c) for c in attrs.get("ground_truth_classes") or ORCHARD_GT_CLASSES]
     multihot = label = mask_probability = None
@@ -179,6 +182,9 @@ def load_posed_images(images_path, labels_path=None, probability: bool = False) 
             backdrop = ([float(c) for c in colour], float(level))
         if "label" in lgroup:
             label = np.asarray(lgroup["label"][...])
+            if label.shape != (n, h, w) or label.dtype != np.uint8:
+                raise ValueError(f"{labels_path}: label must be ({n}, {h}, {w}) uint8 like the {n} images of {w}x{h} "
+                                 f"({images_path}), got {label.shape} {label.dtype}")
             # label values follow the config's prompt order (a dropped class leaves a gap):
             # renumber them 1..C in the order of `classes`, like the SRF's heads
             values = lattrs.get("class_values") or {name: i + 1 for i, name in enumerate(classes)}

@@ -53,6 +53,31 @@ LEGACY_MODEL_CONFIG = {"density_bias": -1.0, "density_grid": False, "appearance_
                        "semantic_octaves": 0, "color_threshold": 1e-4}
 
 
+def attribute_problem(attrs: dict) -> str | None:
+    """What is wrong with the attributes a field is loaded from (`SemanticRadianceField` reads them
+    all), or None: each must be there, of its shape, and `classes` one name per semantic head."""
+    config = attrs.get("model_config")
+    if not isinstance(config, dict):
+        return "attribute model_config is missing or not a mapping"
+    classes = attrs.get("classes")
+    if not isinstance(classes, list) or not all(isinstance(c, str) for c in classes):
+        return "attribute classes is missing or not a list of names"
+    heads = config.get("num_classes", len(classes))
+    if heads != len(classes):
+        return f"attribute classes names {len(classes)} classes {classes}, the model has {heads} semantic heads"
+    for key, shape in (("scene_from_world", (4, 4)), ("world_from_scene", (4, 4)), ("bounds_world", (2, 3))):
+        try:
+            value = np.asarray(attrs.get(key), dtype=np.float64)
+        except (TypeError, ValueError):
+            value = np.zeros(0)
+        if value.shape != shape or not np.all(np.isfinite(value)):
+            return f"attribute {key} is missing or not a finite {shape[0]}x{shape[1]} array"
+    scale = attrs.get("scene_scale")
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not np.isfinite(scale) or scale <= 0:
+        return f"attribute scene_scale must be a positive number, got {scale!r}"
+    return None
+
+
 def read_srf(path, device="cpu"):
     """(model, attrs) from srf.zarr on `device` (a torch.device or string), in eval mode."""
     from srfpipe.srf.model import SRFModel
@@ -62,6 +87,8 @@ def read_srf(path, device="cpu"):
     attrs = meta(group)
     if attrs.get("format") != FORMAT:
         raise ValueError(f"{path}: unknown SRF format {attrs.get('format')!r}, this srfpipe reads {FORMAT}")
+    if problem := attribute_problem(attrs):
+        raise ValueError(f"{path}: {problem}; the artifact is damaged: delete it and re-run its stage 'train'")
     config = {**LEGACY_MODEL_CONFIG, **attrs["model_config"]}
     weights = group["weights"]
     for key in ("inner", "outer"):  # the torch layout, unless tiny-cuda-nn wrote the table
@@ -70,7 +97,11 @@ def read_srf(path, device="cpu"):
             if tcnn and torch.device(device).type != "cuda":
                 raise ValueError(f"{path}: trained with tiny-cuda-nn; load it on a CUDA device")
             config[key] = dict(config[key], prefer_tcnn=tcnn)
-    model = SRFModel(config, device)
+    try:
+        model = SRFModel(config, device)
+    except (KeyError, TypeError, ValueError, IndexError) as exc:  # a model_config no trainer wrote
+        raise ValueError(f"{path}: attribute model_config does not describe a model ({type(exc).__name__}: {exc}); "
+                         "the artifact is damaged: delete it and re-run its stage 'train'") from exc
     state = model.state_dict()
     loaded = {}
     for key, tensor in state.items():
