@@ -365,7 +365,6 @@ def read_scene(occupancy_path: Path, srf_path: Path | None, options: dict, image
 
     group = open_artifact(occupancy_path, stage="distill")
     attrs = meta(group)
-    grid = check_cache(occupancy_path, group, attrs)
     if srf_path is not None:  # checked: the runtime renders from it (without it: contact only, no views)
         open_artifact(srf_path, stage="train")
         # one scene: the field the cache was distilled from, and the images that field was trained on
@@ -375,6 +374,7 @@ def read_scene(occupancy_path: Path, srf_path: Path | None, options: dict, image
     elif images_path is not None and (field := recorded_input(occupancy_path, "train")) is not None and field.exists():
         # no field given: the images must still be the ones the cache's field was trained on
         require_input(field, images_path, "downscale")
+    grid = check_cache(occupancy_path, group, attrs)  # after the inputs: the wrong scene is the clearer error
     roles = dict(zip(attrs["distance"]["classes"], attrs["distance"]["roles"]))
     gt_folder, gt_scene = read_ground_truth(Path(images_path) if images_path else None)
     units = resolve_unit(options, attrs.get("unit"), gt_scene)
