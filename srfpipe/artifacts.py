@@ -196,17 +196,23 @@ def remove_stale_siblings(path: str | Path) -> list[Path]:
 OUTPUT_MARKERS = (_ZARR_JSON, MANIFEST_NAME, "metrics.json", "scene.json", "ground_truth/scene.json", "frames.json")
 
 
+def holds_output(path: str | Path) -> bool:
+    """`path` is a folder holding a stage's output (one of OUTPUT_MARKERS at its top): what a
+    finished stage leaves, since every stage writes its output atomically. An empty folder or a
+    plain file at an output path is not one."""
+    path = Path(path)
+    return path.is_dir() and any(os.path.lexists(path / marker) for marker in OUTPUT_MARKERS)
+
+
 def check_replaceable(path: str | Path) -> None:
     """Refuse (FileExistsError naming `path`) an output path that holds something no stage wrote:
     a plain file, or a folder that is not empty and holds none of OUTPUT_MARKERS (`--out data/`
     would otherwise be deleted and replaced by the artifact). A missing path, an empty folder and an
     earlier output (complete or not) may be replaced."""
     path = Path(path)
-    if not os.path.lexists(path):
+    if not os.path.lexists(path) or holds_output(path):
         return
     if path.is_dir():
-        if any(os.path.lexists(path / marker) for marker in OUTPUT_MARKERS):
-            return
         if not any(name != ".snakemake_timestamp" for name in os.listdir(path)):
             return
         what = "a folder that holds no srfpipe output"

@@ -3,7 +3,7 @@ one-line-per-scene summary printed when a run ends (Snakemake's onsuccess/onerro
 `srfpipe summary` prints the same from the files on disk at any time).
 
 A scene's state is read from its artifacts, which every stage writes atomically: an artifact that
-exists is finished. The first missing one in the chain is where the scene stopped; the stage logs
+exists is finished (a folder holding a stage's output, not an empty folder or a file in its place). The first missing one in the chain is where the scene stopped; the stage logs
 written after the last finished artifact say whether it failed there, and how.
 """
 
@@ -15,6 +15,8 @@ import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
+
+from srfpipe.artifacts import holds_output
 
 # The per-scene artifacts in the order the workflow builds them (workflow/rules/common.smk ARTIFACTS).
 DEFAULT_CHAIN = ("poses.zarr", "images.zarr", "labels.zarr", "srf.zarr", "eval", "occupancy.zarr")
@@ -133,9 +135,9 @@ def scene_state(scene: str, results: str | Path = "results", logs: str | Path = 
     for artifact in chain:
         path = folder / artifact
         if artifact == EVALUATION and artifact != chain[-1]:
-            evaluated = path.exists()
+            evaluated = holds_output(path)
             continue
-        if not path.exists():
+        if not holds_output(path):
             missing = artifact
             break
         built.append(artifact)

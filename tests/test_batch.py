@@ -114,8 +114,10 @@ def test_a_scene_built_to_its_occupancy_cache_without_eval_is_done_and_says_it_w
     results, logs = tmp_path / "results", tmp_path / "logs"
     for scene in ("built", "scored", "broken"):
         for artifact in DEFAULT_CHAIN:
-            if artifact != "eval" or scene == "scored":
+            if artifact != "eval":  # stand-ins: a folder holding what a stage writes at its top
                 (results / scene / artifact).mkdir(parents=True)
+                (results / scene / artifact / "zarr.json").write_text("{}")
+    (results / "scored" / "eval").mkdir()
     (results / "scored" / "eval" / "metrics.json").write_text(json.dumps({"psnr": 28.4, "miou": 0.8}))
     (logs / "broken").mkdir(parents=True)
     (logs / "broken" / "evaluate.log").write_text("srfpipe evaluate: error: results/broken/srf.zarr: no weights\n")
@@ -128,8 +130,31 @@ def test_a_scene_built_to_its_occupancy_cache_without_eval_is_done_and_says_it_w
     # eval as the final artifact is a step like any other
     assert scene_state("built", results, logs, DEFAULT_CHAIN[:5]).status == "incomplete"
     # a scene stopped before srf.zarr is incomplete at that artifact, whatever eval/ holds
+    (results / "built" / "srf.zarr" / "zarr.json").unlink()
     (results / "built" / "srf.zarr").rmdir()
     assert scene_state("built", results, logs).missing == "srf.zarr"
+
+
+def test_an_empty_folder_or_a_file_where_an_artifact_belongs_is_not_a_finished_stage(tmp_path):
+    """Every stage writes its output atomically, so a finished artifact holds what its stage writes;
+    an empty folder (made by hand, or by a tool that pre-creates outputs) or a plain file at
+    results/{scene}/occupancy.zarr is not a built scene."""
+    from srfpipe.batch import DEFAULT_CHAIN, scene_state
+
+    results, logs = tmp_path / "results", tmp_path / "logs"
+    for artifact in DEFAULT_CHAIN[:-1]:
+        (results / "tree" / artifact).mkdir(parents=True)
+        (results / "tree" / artifact / ("metrics.json" if artifact == "eval" else "zarr.json")).write_text("{}")
+    (results / "tree" / "occupancy.zarr").mkdir()
+    state = scene_state("tree", results, logs)
+    assert (state.status, state.missing) == ("incomplete", "occupancy.zarr")
+    (results / "tree" / "occupancy.zarr").rmdir()
+    (results / "tree" / "occupancy.zarr").write_text("not an artifact")
+    assert scene_state("tree", results, logs).missing == "occupancy.zarr"
+    (results / "tree" / "occupancy.zarr").unlink()
+    (results / "tree" / "occupancy.zarr").mkdir()
+    (results / "tree" / "occupancy.zarr" / "zarr.json").write_text("{}")
+    assert scene_state("tree", results, logs).status == "done"
 
 
 # ------------------------------------------------------------ what a config change re-runs
