@@ -160,6 +160,12 @@ def main(argv: list[str] | None = None) -> int:
         logging.getLogger("srfpipe").debug("traceback", exc_info=True)
         print(f"srfpipe {args.stage}: error: {exc}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:
+        # Ctrl-C: the stage's partial output is already removed (training keeps its checkpoints
+        # and resumes from them); a traceback would only bury that
+        logging.getLogger("srfpipe").debug("traceback", exc_info=True)
+        print(f"srfpipe {args.stage}: interrupted: its output was not written", file=sys.stderr)
+        return 130
     return int(result or 0)
 
 

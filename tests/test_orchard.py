@@ -262,3 +262,25 @@ def test_python_dash_m_srfpipe_is_the_srfpipe_command():
     result = subprocess.run([sys.executable, "-m", "srfpipe", "summary", "--help"],
                             capture_output=True, text=True, check=True)
     assert "usage: srfpipe summary" in result.stdout
+
+
+def test_ctrl_c_stops_a_stage_with_one_line_and_leaves_no_output(tmp_path):
+    """Ctrl-C while the orchard renders: exit status 130, one line saying so (no traceback), and
+    neither the capture folder nor its hidden partial left behind."""
+    import os
+    import signal
+    import time
+
+    out = tmp_path / "capture"
+    stage = subprocess.Popen([sys.executable, "-m", "srfpipe", "orchard", "--out", str(out), "--no-progress"],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not any(p.name.startswith(".capture.partial-") for p in tmp_path.iterdir()):
+        assert stage.poll() is None and time.monotonic() < deadline, "the stage ended before it was interrupted"
+        time.sleep(0.1)
+    stage.send_signal(signal.SIGINT)
+    _, stderr = stage.communicate(timeout=120)
+    assert stage.returncode == 130, stderr
+    assert "Traceback" not in stderr and stderr.strip().splitlines()[-1] == (
+        "srfpipe orchard: interrupted: its output was not written")
+    assert os.listdir(tmp_path) == []
