@@ -955,6 +955,29 @@ def test_a_field_with_missing_or_wrong_attributes_is_refused_naming_it(tmp_path,
         read_srf(path)
 
 
+def test_a_field_whose_weights_hold_nan_is_refused_naming_the_array(tmp_path, tiny_field):
+    """A NaN in a trained parameter made evaluate write `psnr: null` and exit 0, and distill a cache
+    of nothing; the camera centres, a buffer that holds NaN on purpose, still load."""
+    import shutil
+
+    import zarr
+
+    from srfpipe.artifacts import reseal_artifact
+    from srfpipe.srf.io import read_srf
+
+    path = tmp_path / "srf.zarr"
+    shutil.copytree(tiny_field.path, path)
+    read_srf(path)  # as trained
+    weights = zarr.open_group(str(path), mode="r+")["weights"]
+    key = next(k for k in sorted(weights.array_keys()) if k.endswith("color_mlp.0.weight"))
+    damaged = weights[key][...]
+    damaged[0, 0] = np.nan
+    weights[key][...] = damaged
+    reseal_artifact(path)
+    with pytest.raises(ValueError, match=rf"{re.escape(str(path))}: weights/{re.escape(key)} holds 1 NaN or infinite"):
+        read_srf(path)
+
+
 @pytest.mark.parametrize("case", ["occupancy frames", "no distance", "no grid", "no classes"])
 def test_an_occupancy_cache_with_missing_or_wrong_parts_is_refused_naming_it(tmp_path, case):
     """occupancy.zarr's attributes and arrays were read with `attrs[key]` / `group[key]`: one missing

@@ -103,6 +103,9 @@ def read_srf(path, device="cpu"):
         raise ValueError(f"{path}: attribute model_config does not describe a model ({type(exc).__name__}: {exc}); "
                          "the artifact is damaged: delete it and re-run its stage 'train'") from exc
     state = model.state_dict()
+    # a trained parameter that is not finite renders nothing (NaN PSNR, an empty cache); buffers
+    # may hold NaN on purpose (camera_centres of views no training image was taken from)
+    parameters = {name for name, _ in model.named_parameters()}
     loaded = {}
     for key, tensor in state.items():
         if key not in weights and key in OPTIONAL_WEIGHTS:
@@ -113,6 +116,9 @@ def read_srf(path, device="cpu"):
         array = np.asarray(weights[key][...])
         if tuple(array.shape) != tuple(tensor.shape):
             raise ValueError(f"{path}: weights/{key} has shape {array.shape}, the model expects {tuple(tensor.shape)}")
+        if key in parameters and not np.all(np.isfinite(array)):
+            raise ValueError(f"{path}: weights/{key} holds {int(np.sum(~np.isfinite(array)))} NaN or infinite "
+                             "values (a training that diverged, or a damaged file); re-run its stage 'train'")
         loaded[key] = torch.from_numpy(array).to(tensor.dtype)
     model.load_state_dict(loaded)
     return model.to(device).eval(), attrs
