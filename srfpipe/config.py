@@ -68,13 +68,7 @@ def validate_scene(scene: dict, source: str = "<scene>", whole: bool = False) ->
                    if isinstance(occupancy, dict) and role in occupancy}
     knows_prompts = whole or "segmentation" in scene
     apply_preset(scene)
-    errors = sorted(DefaultFillingValidator(load_schema()).iter_errors(scene), key=lambda e: list(e.path))
-    if errors:
-        lines = []
-        for error in errors:
-            key = ".".join(str(p) for p in error.path) or "(top level)"
-            lines.append(f"{source}: {key}: {error.message}{_suggestion(error)}")
-        raise ConfigError("\n".join(lines))
+    check_schema(scene, "scene.schema.yaml", source)
     resolve_conditional_defaults(scene)
     problems = contradictions(scene)
     if knows_prompts:
@@ -82,6 +76,25 @@ def validate_scene(scene: dict, source: str = "<scene>", whole: bool = False) ->
     if problems:
         raise ConfigError("\n".join(f"{source}: {problem}" for problem in problems))
     return scene
+
+
+def check_schema(instance: dict, schema: str, source: str) -> None:
+    """Validate `instance` against the schema file `schema`, filling in its defaults; ConfigError
+    with one line per problem, each naming `source` and the key (and the key meant, for a typo)."""
+    errors = sorted(DefaultFillingValidator(load_schema(schema)).iter_errors(instance), key=lambda e: list(e.path))
+    if errors:
+        raise ConfigError("\n".join(f"{source}: {'.'.join(str(p) for p in error.path) or '(top level)'}: "
+                                    f"{error.message}{_suggestion(error)}" for error in errors))
+
+
+def validate_workflow_config(config: dict, source: str = "config/config.yaml") -> dict:
+    """Validate the workflow's config (config/config.yaml with any --config values) in place,
+    defaults filled in, and return it. Snakemake's own `validate` printed the whole schema and named
+    no file."""
+    if not isinstance(config, dict):
+        raise ConfigError(f"{source}: the workflow config must hold a mapping, got {type(config).__name__}")
+    check_schema(config, "config.schema.yaml", source)
+    return config
 
 
 def resolve_conditional_defaults(scene: dict) -> None:

@@ -47,3 +47,18 @@ def test_bad_scene_file_fails_at_start_naming_file_and_key(workflow):
     assert result.returncode != 0
     output = result.stdout + result.stderr
     assert "tiny.yaml" in output and "images.downscale" in output
+
+
+def test_a_bad_workflow_config_fails_at_start_naming_the_file_and_key(workflow):
+    """config/config.yaml (or --config) with an unknown key or a bad value: one line naming the file
+    and the key, a typo's likely meaning, not Snakemake's dump of the whole schema."""
+    workflow.write_scene("tiny", TINY_ORCHARD)
+    result = workflow.run("-n", "results/tiny/images.zarr", "--config", "final_artifcat=sim", check=False)
+    output = result.stdout + result.stderr
+    assert result.returncode != 0
+    assert ("config.yaml with --config: (top level): Additional properties are not allowed "
+            "('final_artifcat' was unexpected); did you mean 'final_artifcat' -> 'final_artifact'?") in output
+    assert "Failed validating" not in output and "'description'" not in output
+    result = workflow.run("-n", "results/tiny/images.zarr", "--config", "final_artifact=mesh", check=False)
+    assert result.returncode != 0
+    assert "config.yaml with --config: final_artifact: 'mesh' is not one of" in result.stdout + result.stderr

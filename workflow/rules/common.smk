@@ -3,12 +3,14 @@ import json
 import re
 from pathlib import Path
 
-from snakemake.utils import validate
-
-from srfpipe.config import ConfigError, load_scene
+from srfpipe.config import ConfigError, load_scene, validate_workflow_config
 
 
-validate(config, schema="../schemas/config.schema.yaml")
+try:
+    validate_workflow_config(config, " and ".join(map(str, workflow.configfiles or ["config"]))
+                             + (" with --config" if workflow.config_settings.overwrite_config else ""))
+except ConfigError as exc:
+    raise WorkflowError(str(exc)) from None
 
 RESULTS = config["results_dir"]
 SCENES_DIR = Path(config["scenes_dir"])
