@@ -352,6 +352,24 @@ def test_import_mask_outside_the_mask_folder_is_refused(tmp_path, escape):
                    "outside the mask folder")
 
 
+def test_an_imported_mask_path_that_is_a_folder_is_refused(tmp_path):
+    """A folder where a frame's mask belongs was read as a missing mask: the frame trained unlabelled
+    with only a warning."""
+    from tests.test_segment import options, red_blue_images, write_images
+
+    from srfpipe.segment.run import prompt_options, segment_images
+
+    images = write_images(tmp_path / "images.zarr", red_blue_images(n=2, width=40, height=30))
+    folder = tmp_path / "masks"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "frame_00000_apple.png"), np.full((30, 40), 255, np.uint8))
+    (folder / "frame_00001_apple.png").mkdir()
+    out = tmp_path / "apple.zarr"
+    opts = prompt_options(options(backend="import", **{"import": {"path": str(folder)}}), "apple")
+    assert_refused(lambda: segment_images(images, "apple", opts, out, progress=False), out, "frame_00001_apple.png",
+                   "mask path is not a file")
+
+
 def test_import_masks_of_frames_whose_names_hold_a_dot(tmp_path):
     """Frames named like `shot.0001` (image `shot.0001.jpg`): {stem} is the whole name, not `shot`
     (which gave every frame the one mask `shot_apple.png`, or none)."""

@@ -175,6 +175,9 @@ def import_masks(
                              f"(it maps {sorted((spec.get('values') or {}))})")
         values = np.asarray([values] if isinstance(values, int) else values)
     paths = [mask_path(folder, mask_filename(pattern, name, prompt), pattern) for name in names]
+    for path in paths:
+        if path.exists() and not path.is_file():  # a folder: no frame is meant to be left without its mask
+            raise ValueError(f"{path}: mask path is not a file (segmentation.import.pattern {pattern!r})")
     missing = [name for name, path in zip(names, paths) if not path.is_file()]
     if len(missing) == len(names):
         raise FileNotFoundError(f"{paths[0]}: mask file does not exist, nor does any other of the {len(names)} "
