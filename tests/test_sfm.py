@@ -181,6 +181,22 @@ def test_video_frames_are_chosen_by_sharpness_and_spacing(tmp_path):
     assert record["blurred_frames"] == blurred and len(paths) == 24 - len(blurred)
 
 
+@pytest.mark.bad_input
+def test_truncated_video_is_refused_naming_it(tmp_path):
+    # an AVI cut in half (a copy interrupted): OpenCV decodes its first half without an error
+    rng = np.random.default_rng(0)
+    texture = _textured(rng, 480, 120)
+    video = tmp_path / "walk.avi"
+    _write_video(video, [np.ascontiguousarray(texture[:, 4 * i:4 * i + 160]) for i in range(24)])
+    data = video.read_bytes()
+    video.write_bytes(data[:len(data) // 2])
+    out = tmp_path / "frames"
+    with pytest.raises(ValueError, match=r"walk.avi: OpenCV decoded \d+ of the 24 frames the video's header lists "
+                                         r"\(truncated"):
+        extract_frames(video, out, max_frames=12)
+    assert not out.exists() and not list(tmp_path.glob(".frames.partial-*"))
+
+
 def test_choose_frames_windows():
     scores = np.array([1.0, 5.0, 2.0, 2.5, 9.0, 1.0, 3.0])
     assert choose_frames(scores, 3) == ([1, 4, 6], [])  # windows [0, 2), [2, 5), [5, 7)

@@ -33,6 +33,11 @@ DEFAULT_MAX_FRAMES = 150  # source.max_frames when absent
 SHARPNESS_SIDE = 640
 BLUR_RATIO = 0.5
 BLUR_NEIGHBOURS = 8
+# A video that decodes to fewer frames than its header lists is cut short (a copy interrupted: the
+# decoder stops halfway without an error) or holds a frame the decoder skips (every later frame's
+# index then off by one). Refused beyond this shortfall; a header's count estimated from the
+# duration (containers without one) may be off by a frame.
+MAX_MISSING_FRAMES = 1
 FRAMES_FILE = "frames.json"
 IMAGES_DIR = "images"
 
@@ -81,6 +86,7 @@ def scan_video(video: Path) -> tuple[np.ndarray, np.ndarray, float, tuple[int, i
 
     capture = _open(video)
     fps = float(capture.get(cv2.CAP_PROP_FPS) or 0.0)
+    listed = int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
     scores, times, size = [], [], None
     try:
         while True:
@@ -100,6 +106,11 @@ def scan_video(video: Path) -> tuple[np.ndarray, np.ndarray, float, tuple[int, i
         capture.release()
     if not scores:
         raise ValueError(f"{video}: OpenCV decoded no frame from the video")
+    if listed - len(scores) > MAX_MISSING_FRAMES:
+        raise ValueError(f"{video}: OpenCV decoded {len(scores)} of the {listed} frames the video's header lists "
+                         "(truncated, or a frame it cannot decode)")
+    if listed > len(scores):
+        log.warning("%s: OpenCV decoded %d of the %d frames the video's header lists", video, len(scores), listed)
     return np.asarray(scores), np.asarray(times), fps, size
 
 
