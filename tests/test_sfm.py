@@ -197,6 +197,54 @@ def test_truncated_video_is_refused_naming_it(tmp_path):
     assert not out.exists() and not list(tmp_path.glob(".frames.partial-*"))
 
 
+def _frames_folder(root, n=4):
+    (root / "images").mkdir(parents=True)
+    frames = []
+    for i in range(n):
+        cv2.imwrite(str(root / "images" / f"frame_{i:05d}.png"), _textured(np.random.default_rng(i)))
+        frames.append({"file_path": f"images/frame_{i:05d}.png", "index": i, "timestamp_s": i / 25.0})
+    return frames
+
+
+def _write_frames_json(root, frames):
+    (root / "frames.json").write_text(json.dumps({"frames": frames}))
+    return root / "frames.json"
+
+
+@pytest.mark.bad_input
+def test_frames_folder_entries_are_checked_naming_the_frame(tmp_path):
+    # a frames folder (srfpipe frames) edited by hand: every entry is checked before SfM
+    cases = [
+        (lambda f, root: f.__setitem__(2, dict(f[1])), r"frame 2: file_path 'images/frame_00001.png' is listed twice"),
+        (lambda f, root: f[1].update(index="abc"), r"frame 1: index must be a frame number .* got 'abc'"),
+        (lambda f, root: f[1].update(index=True), r"frame 1: index must be a frame number"),
+        (lambda f, root: f[3].update(timestamp_s=[1]), r"frame 3: timestamp_s must be a number, got list"),
+        (lambda f, root: f[2].update(file_path="images"), r"frame 2: image .*images does not exist"),
+        (lambda f, root: ((root / "images" / "notes.png").write_text("not an image"),
+                          f[0].update(file_path="images/notes.png")), r"notes.png: corrupt or unsupported image"),
+    ]
+    for k, (edit, message) in enumerate(cases):
+        root = tmp_path / f"case{k}"
+        frames = _frames_folder(root)
+        edit(frames, root)
+        path = _write_frames_json(root, frames)
+        with pytest.raises((ValueError, FileNotFoundError), match=message) as info:
+            read_frames(root)
+        assert str(root) in str(info.value), info.value
+        assert "frames.json" in str(info.value) or "notes.png" in str(info.value)
+        assert path.is_file()
+    # a frame whose image was deleted (weeded out by hand) is skipped, recorded, and the record's
+    # frames stay aligned with the paths
+    root = tmp_path / "weeded"
+    frames = _frames_folder(root)
+    _write_frames_json(root, frames)
+    (root / "images" / "frame_00002.png").unlink()
+    paths, record = read_frames(root)
+    assert paths == ["images/frame_00000.png", "images/frame_00001.png", "images/frame_00003.png"]
+    assert [f["index"] for f in record["frames"]] == [0, 1, 3]
+    assert record["missing_images"] == ["images/frame_00002.png"] and record["n_frames_listed"] == 4
+
+
 def test_choose_frames_windows():
     scores = np.array([1.0, 5.0, 2.0, 2.5, 9.0, 1.0, 3.0])
     assert choose_frames(scores, 3) == ([1, 4, 6], [])  # windows [0, 2), [2, 5), [5, 7)

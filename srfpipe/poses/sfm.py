@@ -587,5 +587,7 @@ def read_video(path: str | Path, source: dict, options: dict, threads: int = -1,
                                                    "selection", "blurred_frames")},
         "frame_indices": [int(f.get("index", -1)) for f in frames],
         "frame_timestamps_s": [float(f.get("timestamp_s", float("nan"))) for f in frames],
+        "n_frames_listed": record["n_frames_listed"],
+        "missing_images": record["missing_images"],
     }
     return _capture(path, image_paths, result, "video", path / FRAMES_FILE, extra)

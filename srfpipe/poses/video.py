@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from srfpipe.poses.capture import load_json, resolve_inside
+from srfpipe.poses.capture import (check_image_file, check_unique, load_json, number, record_missing_images,
+                                   resolve_inside)
 
 log = logging.getLogger(__name__)
 
@@ -169,19 +170,39 @@ def extract_frames(video: str | Path, out: str | Path, max_frames: int | None = 
 
 
 def read_frames(folder: str | Path, allowed_roots=()) -> tuple[list[str], dict]:
-    """The frames folder's image paths (relative, checked to stay inside it) and its frames.json."""
+    """The frames folder's image paths (relative, checked to stay inside it and to be images) and its
+    frames.json, whose `frames` are those kept: a frame whose image was deleted (a user weeding out
+    blurred frames) is skipped with a warning and listed in `missing_images` (with `n_frames_listed`);
+    a frame listed twice, an `index` or `timestamp_s` that is not a number, a file that is not an
+    image are refused, naming the frame."""
     folder = Path(folder)
     path = folder / FRAMES_FILE
     record = load_json(path)
     frames = record.get("frames")
     if not isinstance(frames, list) or not frames:
         raise ValueError(f"{path}: 'frames' must be a non-empty list")
-    paths = []
+    paths, kept, missing = [], [], []
     for i, frame in enumerate(frames):
+        where = f"{path}: frame {i}"
         if not isinstance(frame, dict):
-            raise ValueError(f"{path}: frame {i} is not an object")
-        paths.append(resolve_inside(folder, frame.get("file_path"), f"{path}: frame {i}", allowed_roots))
-    return paths, record
+            raise ValueError(f"{where} is not an object")
+        relative = resolve_inside(folder, frame.get("file_path"), where, allowed_roots)
+        check_unique(paths + missing, relative, where)
+        if "index" in frame and (isinstance(frame["index"], bool) or not isinstance(frame["index"], int)
+                                 or frame["index"] < 0):
+            raise ValueError(f"{where}: index must be a frame number (an integer >= 0), got {frame['index']!r}")
+        if "timestamp_s" in frame:
+            number(frame["timestamp_s"], "timestamp_s", where)
+        if not (folder / relative).exists():
+            missing.append(relative)
+            continue
+        check_image_file(folder / relative, where)
+        paths.append(relative)
+        kept.append(frame)
+    extra = record_missing_images(path, len(frames), missing)
+    if not paths:
+        raise FileNotFoundError(f"{path}: none of the {len(frames)} frames has an image file")
+    return paths, {**record, "frames": kept, **extra}
 
 
 def add_arguments(parser) -> None:
