@@ -277,6 +277,24 @@ def test_empty_folder_and_pose_matchers_are_refused(tmp_path):
         import_poses({"format": "video", "path": str(photos)}, None, {}, tmp_path / "p.zarr")
 
 
+@pytest.mark.bad_input
+@pytest.mark.parametrize("suffix, message", [(".jpg", "truncated JPEG"), (".png", "corrupt or unreadable image")])
+def test_truncated_photo_is_refused_before_structure_from_motion(tmp_path, suffix, message):
+    # COLMAP reads either without an error (the missing rows grey) and posed it
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(photos / f"{i}{suffix}"), _textured(np.random.default_rng(i)))
+    data = (photos / f"1{suffix}").read_bytes()
+    (photos / f"1{suffix}").write_bytes(data[:len(data) // 2])
+    with pytest.raises(ValueError, match=rf"photos/1\{suffix}: {message}"):
+        sfm.list_images(photos)
+    out = tmp_path / "poses.zarr"
+    with pytest.raises(ValueError, match=rf"photos/1\{suffix}: {message}"):
+        import_poses({"format": "images", "path": str(photos)}, None, {}, out, threads=1)
+    assert not out.exists() and not list(tmp_path.glob(".poses.zarr.partial-*"))
+
+
 def _observed_model(elevations_deg, pp_shift, views_per_ring=12, n_points=800, noise_px=0.5, seed=0):
     """A reconstruction as incremental mapping leaves it: cameras on rings at `elevations_deg`
     round a cloud of points, each point observed where a camera whose principal point lies

@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from srfpipe.images import read_image
 from srfpipe.poses.capture import Capture, check_image_file, orthonormalize, read_image_size, resolve_inside
 from srfpipe.poses.colmap import colmap_camera_parameters
 from srfpipe.settings import PosesSettings
@@ -103,7 +104,8 @@ def list_images(root: Path, images_dir: str | None = None, allowed_roots=()) -> 
     """(folder the paths are relative to, sorted image paths) of an `images` capture.
 
     The photos of `root/images_dir` when given, else of `root`, else of `root/images`; hidden files
-    are skipped; every path (symlinks resolved) must stay inside `root` or `allowed_roots`.
+    are skipped; every path (symlinks resolved) must stay inside `root` or `allowed_roots`; every
+    photo must decode (`srfpipe.images.read_image`: a truncated one is refused naming it).
     """
     root = Path(root)
     if not root.is_dir():
@@ -129,6 +131,9 @@ def list_images(root: Path, images_dir: str | None = None, allowed_roots=()) -> 
                      for name in names]
             for path in paths:
                 check_image_file(root / path, root)
+                # decoded once here: COLMAP reads a truncated JPEG or PNG without an error (the rows
+                # it lacks grey) and would pose it; the downscale stage would refuse it only after SfM
+                read_image(root / path)
             return root, paths
     raise ValueError(f"{root}: no photos ({', '.join(IMAGE_SUFFIXES)}) in the folder"
                      + ("" if images_dir else " or its images/ subfolder"))
