@@ -263,6 +263,21 @@ def test_nothing_registered_is_an_error_naming_the_folder(tmp_path):
     assert not out.exists() and not list(tmp_path.glob(".colmap-sfm-*"))
 
 
+@pytest.mark.bad_input
+def test_photos_without_parallax_are_an_error_that_says_so(tmp_path):
+    # the same view over and over (a camera on a tripod): every pair matches, nothing triangulates
+    folder = tmp_path / "tripod"
+    folder.mkdir()
+    view = _textured(np.random.default_rng(3), 160, 120)
+    for i in range(5):
+        cv2.imwrite(str(folder / f"{i}.png"), view)
+    out = tmp_path / "poses.zarr"
+    with pytest.raises(ValueError, match=r"tripod: structure from motion registered none of the 5 images "
+                                         r"\(10 of 10 image pairs verified\): .*too little parallax"):
+        import_poses({"format": "images", "path": str(folder)}, None, {}, out, threads=1)
+    assert not out.exists() and not list(tmp_path.glob(".colmap-sfm-*"))
+
+
 def test_empty_folder_and_pose_matchers_are_refused(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(ValueError, match=r"empty: no photos"):

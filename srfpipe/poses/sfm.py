@@ -485,7 +485,9 @@ def run_sfm(root: Path, image_paths: list[str], *, video: bool = False, matcher:
         if model is None or model.num_reg_images() == 0:
             raise ValueError(f"{root}: structure from motion registered none of the {n} images "
                              f"({pairs['pairs_verified']} of {pairs['pairs_matched']} image pairs verified): "
-                             "too little overlap or texture between them")
+                             + ("too little overlap or texture between them" if not pairs["pairs_verified"] else
+                                "the pairs that match show too little parallax to start from (the camera stood "
+                                "still or only turned: it must move between views)"))
         model, principal_point_record = refine_principal_point(model, principal_point)
 
         index_of = {_link_name(i): i for i in range(n)}
