@@ -34,11 +34,11 @@ DEFAULT_MAX_FRAMES = 150  # source.max_frames when absent
 SHARPNESS_SIDE = 640
 BLUR_RATIO = 0.5
 BLUR_NEIGHBOURS = 8
-# A video that decodes to fewer frames than its header lists is cut short (a copy interrupted: the
-# decoder stops halfway without an error) or holds a frame the decoder skips (every later frame's
-# index then off by one). Refused beyond this shortfall; a header's count estimated from the
-# duration (containers without one) may be off by a frame.
-MAX_MISSING_FRAMES = 1
+# A video that decodes to much fewer frames than its header lists is cut short (a copy interrupted:
+# the decoder stops halfway without an error): refused under this share. A few frames short is only
+# warned about: a container without a frame count (WebM, Matroska) gets one estimated from its
+# duration and mean frame rate, which a phone's variable frame rate puts off by a few frames.
+MIN_DECODED_SHARE = 0.9
 FRAMES_FILE = "frames.json"
 IMAGES_DIR = "images"
 
@@ -107,7 +107,7 @@ def scan_video(video: Path) -> tuple[np.ndarray, np.ndarray, float, tuple[int, i
         capture.release()
     if not scores:
         raise ValueError(f"{video}: OpenCV decoded no frame from the video")
-    if listed - len(scores) > MAX_MISSING_FRAMES:
+    if len(scores) < MIN_DECODED_SHARE * listed:
         raise ValueError(f"{video}: OpenCV decoded {len(scores)} of the {listed} frames the video's header lists "
                          "(truncated, or a frame it cannot decode)")
     if listed > len(scores):
