@@ -173,6 +173,20 @@ def test_whole_grid_distance_is_the_cache_s_and_mesh_colours_are_the_eval_render
     assert np.allclose(np.array([c[:3] for c in rgba.values()]) * 255, class_colours(CLASSES)[1:])
 
 
+@pytest.mark.parametrize("case", ["zero_focal", "tiny_focal", "zero_rotation", "scaled", "empty_image"])
+def test_baked_render_refuses_a_view_that_is_no_camera(tree_package, case):
+    """A zero focal length or a zero rotation gave NaN rays that crashed the process in the march
+    kernel (a segmentation fault); a scaled rotation or a 0 x 0 image rendered without a word."""
+    from srfpipe.sim.baked import BakedRenderer
+    from tests.test_bad_inputs import BAD_VIEWS, _bad_view
+
+    renderer = BakedRenderer(tree_package / "baked.zarr")
+    pose, k, (width, height) = _bad_view(case)
+    pose[:3, 3] = [0.0, -2.0, 1.0]
+    with pytest.raises(ValueError, match=BAD_VIEWS[case]):
+        renderer.render(pose, k, width, height)
+
+
 # ------------------------------------------------------------------------------------------ env
 
 
