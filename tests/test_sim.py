@@ -280,3 +280,25 @@ def test_tiny_orchard_package_through_snakemake_and_a_short_rollout(workflow):
 
     with Image.open(gif) as image:
         assert image.n_frames >= 1 and image.size[0] > image.size[1]  # wrist | semantic | third person
+
+
+@pytest.mark.parametrize("flags, problem", [
+    (["--episodes", "0"], "--episodes must be at least 1, got 0"),
+    (["--episodes", "-2"], "--episodes must be at least 1, got -2"),
+    (["--max-steps", "-1"], "--max-steps must be at least 1, got -1"),
+    (["--seed", "-1"], "--seed must be at least 0, got -1"),
+    (["--wrist-size", "0"], "--wrist-size must be at least 1, got 0"),
+    (["--fps", "0"], "--fps must be a positive number, got 0.0"),
+])
+def test_sim_cli_refuses_flags_that_run_nothing_forever_or_fail_after_the_episodes(tree_package, tmp_path, capsys,
+                                                                                   flags, problem):
+    """0 episodes printed a NaN success rate (not JSON) and no GIF with exit 0; a negative --max-steps
+    ran until contact (forever for a policy that avoids it); a negative seed and --fps 0 failed with
+    a traceback after the episodes had run."""
+    from srfpipe.cli import main
+
+    gif = tmp_path / "rollout.gif"
+    rc = main(["sim", "--package", str(tree_package), "--max-steps", "2", "--out", str(gif), *flags])
+    assert rc == 1
+    assert f"srfpipe sim: error: {problem}" in capsys.readouterr().err
+    assert not gif.exists()
