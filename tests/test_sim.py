@@ -8,6 +8,7 @@ and runs a short rollout on it.
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -228,6 +229,36 @@ def test_reward_rises_as_the_tip_approaches_the_target(tree_package):
         if terminated:
             break
     assert reward > first
+
+
+def test_env_refuses_a_wrong_action_and_a_step_after_the_episode_ended(tree_package):
+    """A step after success paid the success bonus again, every step, without a word; an action
+    of the wrong shape said only that an array could not be reshaped, a NaN one named joint
+    targets; a zero wrist size gave empty observations."""
+    from srfpipe.sim.policies import ScriptedPolicy
+
+    env = make_env(tree_package).unwrapped
+    n = env.action_space.shape[0]
+    obs, info = env.reset(seed=0, options={"target": 0})
+    with pytest.raises(ValueError, match=re.escape(f"action must hold one value per joint, shape ({n},), got shape ({n + 1},)")):
+        env.step(np.zeros(n + 1))
+    with pytest.raises(ValueError, match="action must not be NaN"):
+        env.step(np.full(n, np.nan))
+    assert np.array_equal(env.sim.qpos, env.sim.home)  # the refused actions moved nothing
+    policy = ScriptedPolicy(env)
+    for _ in range(150):
+        obs, reward, terminated, truncated, info = env.step(policy(obs, info))
+        if terminated:
+            break
+    assert terminated
+    with pytest.raises(RuntimeError, match=r"call reset\(\) first"):
+        env.step(np.zeros(n))
+    env.reset(seed=0)
+    env.step(np.zeros(n))  # a new episode steps again
+    for kwargs, problem in (({"wrist_size": 0}, "wrist_size must be at least 1"),
+                            ({"max_delta": float("nan")}, "max_delta must be a positive number")):
+        with pytest.raises(ValueError, match=problem):
+            gym.make("srfpipe/AppleReach-v0", package=tree_package, **{"wrist_size": 32, **kwargs})
 
 
 def test_same_seed_same_rollout(tree_package):
