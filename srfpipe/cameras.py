@@ -187,6 +187,31 @@ def check_rotation(matrix: np.ndarray, tolerance: float = 1e-3) -> str | None:
     return None
 
 
+def check_view(camera_to_world, intrinsics, width, height) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """A view to render, checked: camera_to_world a rigid 4x4 transform (a proper rotation, last row
+    0 0 0 1), intrinsics finite (fx, fy, cx, cy) with fx, fy > 0, the image size positive integers.
+    Returns them as float64 arrays and ints; ValueError naming what is wrong."""
+    pose = np.asarray(camera_to_world, dtype=np.float64)
+    if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+        raise ValueError(f"camera_to_world must be a finite 4x4 matrix, got shape {pose.shape}")
+    problem = check_rotation(pose[:3, :3])
+    if problem is not None:
+        raise ValueError(f"camera_to_world must be a rigid transform: its rotation {problem}")
+    if np.abs(pose[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-6:
+        raise ValueError(f"camera_to_world must be a rigid transform: its last row is {pose[3].tolist()}, not [0, 0, 0, 1]")
+    k = np.asarray(intrinsics, dtype=np.float64).reshape(-1)
+    if k.shape != (4,) or not np.all(np.isfinite(k)) or k[0] <= 0 or k[1] <= 0:
+        raise ValueError(f"intrinsics must be finite (fx, fy, cx, cy) with fx, fy > 0, got {k.tolist()}")
+    try:
+        size = int(width), int(height)
+        whole = size[0] == width and size[1] == height
+    except (TypeError, ValueError):
+        size, whole = (0, 0), False
+    if not whole or min(size) <= 0:
+        raise ValueError(f"image size must be positive integers, got {width!r} x {height!r}")
+    return pose, k, size[0], size[1]
+
+
 def axes_meeting_point(camera_to_world: np.ndarray) -> np.ndarray | None:
     """The point closest (least squares) to every camera's optical axis, in front of the cameras;
     None when the axes are (nearly) parallel or meet behind the cameras."""

@@ -623,6 +623,64 @@ def test_random_field_queries_are_finite(tiny_field, points):
     assert np.all(density[outside] == 0)
 
 
+def _view():
+    """A camera 2 units from the tiny field, looking at it (OpenCV camera_to_world)."""
+    pose = np.eye(4)
+    pose[:3, :3] = [[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]
+    pose[:3, 3] = [0.0, -2.0, 0.5]
+    return pose, [20.0, 20.0, 8.0, 6.0]
+
+
+def _bad_view(case):
+    pose, k = _view()
+    size = (16, 12)
+    if case == "scaled":
+        pose[:3, :3] *= 3
+    elif case == "sheared":
+        pose[0, 1] += 0.5
+    elif case == "zero_rotation":
+        pose[:3, :3] = 0
+    elif case == "mirrored":
+        pose[:3, 0] *= -1
+    elif case == "last_row":
+        pose[3] = [1, 2, 3, 4]
+    elif case == "zero_focal":
+        k = [0.0, 20.0, 8.0, 6.0]
+    elif case == "tiny_focal":
+        k = [1e-320, 1e-320, 8.0, 6.0]
+    elif case == "empty_image":
+        size = (0, 0)
+    elif case == "fractional_size":
+        size = (16.5, 12)
+    return pose, k, size
+
+
+BAD_VIEWS = {"scaled": "rotation is not orthonormal", "sheared": "rotation is not orthonormal",
+             "zero_rotation": "rotation is not orthonormal", "mirrored": "reflection",
+             "last_row": "last row", "zero_focal": "fx, fy > 0", "tiny_focal": "non-finite ray directions",
+             "empty_image": "image size must be positive integers", "fractional_size": "image size must be positive integers"}
+
+
+@pytest.mark.parametrize("case", list(BAD_VIEWS))
+def test_render_refuses_a_view_that_is_no_camera(tiny_field, case):
+    """A non-rigid pose was rendered as a distorted image (or raised an index error from the grid),
+    a fractional size was truncated: the view is refused naming what is wrong."""
+    pose, k, (width, height) = _bad_view(case)
+    with pytest.raises(ValueError, match=re.escape(BAD_VIEWS[case])):
+        tiny_field.render(pose, k, width, height)
+
+
+def test_render_of_a_huge_image_is_refused_before_allocating(tiny_field, monkeypatch):
+    """100000 x 100000 pixels tried to allocate 80 GB of rays (then an allocator error, or swap)."""
+    from srfpipe.memory import MemoryEstimateError
+
+    monkeypatch.setenv("SRFPIPE_MAX_MEMORY_GB", "1")
+    pose, k = _view()
+    with pytest.raises(MemoryEstimateError, match="the image size: rendering 100000 x 100000 pixels"):
+        tiny_field.render(pose, k, 100000, 100000)
+    assert tiny_field.render(pose, k, 4, 3)["rgb"].shape == (3, 4, 3)
+
+
 @pytest.fixture(scope="module")
 def tiny_field(tmp_path_factory):
     from srfpipe.srf.query import SemanticRadianceField

@@ -8,6 +8,7 @@ and runs a short rollout on it.
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -173,6 +174,20 @@ def test_whole_grid_distance_is_the_cache_s_and_mesh_colours_are_the_eval_render
     assert np.allclose(np.array([c[:3] for c in rgba.values()]) * 255, class_colours(CLASSES)[1:])
 
 
+@pytest.mark.parametrize("case", ["zero_focal", "tiny_focal", "zero_rotation", "scaled", "empty_image"])
+def test_baked_render_refuses_a_view_that_is_no_camera(tree_package, case):
+    """A zero focal length or a zero rotation gave NaN rays that crashed the process in the march
+    kernel (a segmentation fault); a scaled rotation or a 0 x 0 image rendered without a word."""
+    from srfpipe.sim.baked import BakedRenderer
+    from tests.test_bad_inputs import BAD_VIEWS, _bad_view
+
+    renderer = BakedRenderer(tree_package / "baked.zarr")
+    pose, k, (width, height) = _bad_view(case)
+    pose[:3, 3] = [0.0, -2.0, 1.0]
+    with pytest.raises(ValueError, match=BAD_VIEWS[case]):
+        renderer.render(pose, k, width, height)
+
+
 # ------------------------------------------------------------------------------------------ env
 
 
@@ -214,6 +229,36 @@ def test_reward_rises_as_the_tip_approaches_the_target(tree_package):
         if terminated:
             break
     assert reward > first
+
+
+def test_env_refuses_a_wrong_action_and_a_step_after_the_episode_ended(tree_package):
+    """A step after success paid the success bonus again, every step, without a word; an action
+    of the wrong shape said only that an array could not be reshaped, a NaN one named joint
+    targets; a zero wrist size gave empty observations."""
+    from srfpipe.sim.policies import ScriptedPolicy
+
+    env = make_env(tree_package).unwrapped
+    n = env.action_space.shape[0]
+    obs, info = env.reset(seed=0, options={"target": 0})
+    with pytest.raises(ValueError, match=re.escape(f"action must hold one value per joint, shape ({n},), got shape ({n + 1},)")):
+        env.step(np.zeros(n + 1))
+    with pytest.raises(ValueError, match="action must not be NaN"):
+        env.step(np.full(n, np.nan))
+    assert np.array_equal(env.sim.qpos, env.sim.home)  # the refused actions moved nothing
+    policy = ScriptedPolicy(env)
+    for _ in range(150):
+        obs, reward, terminated, truncated, info = env.step(policy(obs, info))
+        if terminated:
+            break
+    assert terminated
+    with pytest.raises(RuntimeError, match=r"call reset\(\) first"):
+        env.step(np.zeros(n))
+    env.reset(seed=0)
+    env.step(np.zeros(n))  # a new episode steps again
+    for kwargs, problem in (({"wrist_size": 0}, "wrist_size must be at least 1"),
+                            ({"max_delta": float("nan")}, "max_delta must be a positive number")):
+        with pytest.raises(ValueError, match=problem):
+            gym.make("srfpipe/AppleReach-v0", package=tree_package, **{"wrist_size": 32, **kwargs})
 
 
 def test_same_seed_same_rollout(tree_package):
@@ -266,3 +311,25 @@ def test_tiny_orchard_package_through_snakemake_and_a_short_rollout(workflow):
 
     with Image.open(gif) as image:
         assert image.n_frames >= 1 and image.size[0] > image.size[1]  # wrist | semantic | third person
+
+
+@pytest.mark.parametrize("flags, problem", [
+    (["--episodes", "0"], "--episodes must be at least 1, got 0"),
+    (["--episodes", "-2"], "--episodes must be at least 1, got -2"),
+    (["--max-steps", "-1"], "--max-steps must be at least 1, got -1"),
+    (["--seed", "-1"], "--seed must be at least 0, got -1"),
+    (["--wrist-size", "0"], "--wrist-size must be at least 1, got 0"),
+    (["--fps", "0"], "--fps must be a positive number, got 0.0"),
+])
+def test_sim_cli_refuses_flags_that_run_nothing_forever_or_fail_after_the_episodes(tree_package, tmp_path, capsys,
+                                                                                   flags, problem):
+    """0 episodes printed a NaN success rate (not JSON) and no GIF with exit 0; a negative --max-steps
+    ran until contact (forever for a policy that avoids it); a negative seed and --fps 0 failed with
+    a traceback after the episodes had run."""
+    from srfpipe.cli import main
+
+    gif = tmp_path / "rollout.gif"
+    rc = main(["sim", "--package", str(tree_package), "--max-steps", "2", "--out", str(gif), *flags])
+    assert rc == 1
+    assert f"srfpipe sim: error: {problem}" in capsys.readouterr().err
+    assert not gif.exists()

@@ -237,15 +237,19 @@ class BakedRenderer:
         self.origin = np.asarray(self.grid.origin, dtype=np.float64)
 
     def render(self, camera_to_world, intrinsics, width: int, height: int, near: float = 0.0) -> dict:
-        from srfpipe.cameras import pixel_rays
+        from srfpipe.cameras import check_view, pixel_rays
+        from srfpipe.memory import check_allocation
 
-        pose = np.asarray(camera_to_world, dtype=np.float64)
-        if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
-            raise ValueError(f"camera_to_world must be a finite 4x4 matrix, got shape {pose.shape}")
-        origins, dirs = pixel_rays(pose, intrinsics, int(width), int(height))
-        origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
-        n = len(origins)
+        pose, k, width, height = check_view(camera_to_world, intrinsics, width, height)
         c = self.probability.shape[3]
+        # origins, directions, the pixel grid, the outputs in float64 and float32
+        check_allocation(width * height * (64 + 12 * (5 + c)), "the image size", f"rendering {width} x {height} pixels")
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            origins, dirs = pixel_rays(pose, k, width, height)
+        origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+        if not np.all(np.isfinite(dirs)):  # the march kernel would read out of its arrays
+            raise ValueError(f"intrinsics {k.tolist()} give non-finite ray directions (a focal length too small)")
+        n = len(origins)
         rgb, sem = np.empty((n, 3)), np.empty((n, c))
         depth, acc = np.empty(n), np.empty(n)
         arguments = (origins, dirs, self.density, self.rgb, self.probability, self.blocks, self.block, self.origin,

@@ -12,7 +12,8 @@
   -`collision_penalty` on contact. It rises as the tip approaches the target.
 * Terminated: on contact with an avoid class (a link capsule inside it, by the occupancy cache), or
   on success (the tip within `success_margin` fruit radii of the fruit's surface). Truncated by
-  the TimeLimit wrapper after `max_episode_steps` (150).
+  the TimeLimit wrapper after `max_episode_steps` (150). A step after termination raises
+  RuntimeError (it would pay the success bonus again): reset first.
 * Reset: the target is drawn with the env's `np_random` from the reachable targets (or set with
   `options={"target": i}`); the arm starts at home at that target's station. The same seed gives
   the same rollout: MuJoCo and the SRF's eval-mode render are deterministic on the CPU.
@@ -46,6 +47,10 @@ class AppleReachEnv(gym.Env):
                  observe_wrist: bool = True):
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
+        if int(wrist_size) < 1:
+            raise ValueError(f"wrist_size must be at least 1 pixel, got {wrist_size}")
+        if not (np.isfinite(max_delta) and max_delta > 0):
+            raise ValueError(f"max_delta must be a positive number of radians, got {max_delta}")
         self.sim = Simulator(package, device=device, wrist_size=(wrist_size, wrist_size))
         task = self.sim.manifest.get("task")
         if not task:
@@ -74,6 +79,7 @@ class AppleReachEnv(gym.Env):
         self.target = self.pool[0]
         self._renderer = None
         self._last_view = None
+        self._terminated = False  # the episode ended (success or contact): step needs a reset first
 
     # ------------------------------------------------------------------ helpers
 
@@ -135,17 +141,27 @@ class AppleReachEnv(gym.Env):
         else:
             self.target = int(self.pool[self.np_random.integers(len(self.pool))])
         self.sim.reset(target=self.target)
+        self._terminated = False
         contact = self.sim.contact()
         distance = self.target_distance()
         return self._observation(), self._info(contact, distance, False)
 
     def step(self, action):
-        action = np.clip(np.asarray(action, dtype=np.float64).reshape(self.action_space.shape), -1.0, 1.0)
+        if self._terminated:
+            raise RuntimeError("step after the episode terminated (success or contact): call reset() first")
+        action = np.asarray(action, dtype=np.float64)
+        if action.size != self.action_space.shape[0]:
+            raise ValueError(f"action must hold one value per joint, shape {self.action_space.shape}, "
+                             f"got shape {action.shape}")
+        if np.isnan(action).any():
+            raise ValueError(f"action must not be NaN, got {action.tolist()}")
+        action = np.clip(action.reshape(self.action_space.shape), -1.0, 1.0)
         contact = self.sim.step(self.sim.data.ctrl + action * self.max_delta)
         distance = self.target_distance()
         success = bool(distance <= self.success_margin * self.target_info["radius_sim"]) and not contact.in_contact
         reward = self.reward_for(distance, success, contact.in_contact)
         terminated = bool(success or contact.in_contact)
+        self._terminated = terminated
         return self._observation(), float(reward), terminated, False, self._info(contact, distance, success)
 
     def render(self):

@@ -129,7 +129,20 @@ def add_arguments(parser) -> None:
     parser.add_argument("--out", metavar="GIF", help="write the rollout here (none: numbers only)")
 
 
+def check_arguments(args) -> None:
+    """Refuse, naming the flag, what would run nothing (0 episodes: a NaN success rate, no GIF),
+    run without end (a negative --max-steps), or fail only after the episodes (a negative --seed,
+    --fps 0)."""
+    for flag, value, least in (("--episodes", args.episodes, 1), ("--max-steps", args.max_steps, 1),
+                               ("--seed", args.seed, 0), ("--wrist-size", args.wrist_size, 1)):
+        if value < least:
+            raise ValueError(f"{flag} must be at least {least}, got {value}")
+    if not (np.isfinite(args.fps) and args.fps > 0):
+        raise ValueError(f"--fps must be a positive number, got {args.fps}")
+
+
 def run(args) -> int:
+    check_arguments(args)
     package = Path(args.package)
     if not (package / "scene.json").exists():
         raise FileNotFoundError(f"{package}: not a simulator package (run `srfpipe package`)")

@@ -20,6 +20,12 @@ import numpy as np
 FAR_RADIUS = 1e9  # world units; see SemanticRadianceField._to_scene
 
 
+def render_bytes_per_ray(classes: int) -> int:
+    """Host memory a rendered ray holds: its origin and direction (float32, a device copy too), its
+    outputs (rgb, logits, depth, accumulation, four sample counts) per chunk and concatenated."""
+    return 2 * 24 + 2 * 4 * (3 + classes + 6)
+
+
 def _points(points_world, name: str = "points_world") -> np.ndarray:
     points = np.asarray(points_world, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
@@ -113,24 +119,22 @@ class SemanticRadianceField:
         training image whose own appearance the view takes (that image's view as it trained)."""
         import torch
 
-        from srfpipe.cameras import transform_poses
+        from srfpipe.cameras import check_view, transform_poses
+        from srfpipe.memory import check_allocation
         from srfpipe.srf.data import image_rays
 
-        pose = np.asarray(camera_to_world, dtype=np.float64)
-        k = np.asarray(intrinsics, dtype=np.float64).reshape(-1)
-        if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
-            raise ValueError(f"camera_to_world must be a finite 4x4 matrix, got shape {pose.shape}")
-        if k.shape != (4,) or not np.all(np.isfinite(k)) or k[0] <= 0 or k[1] <= 0:
-            raise ValueError(f"intrinsics must be finite (fx, fy, cx, cy) with fx, fy > 0, got {k.tolist()}")
-        width, height = int(width), int(height)
-        if width <= 0 or height <= 0:
-            raise ValueError(f"image size must be positive, got {width}x{height}")
+        pose, k, width, height = check_view(camera_to_world, intrinsics, width, height)
         supersample = int(supersample)
         if supersample < 1:
             raise ValueError(f"supersample must be a positive integer, got {supersample}")
+        rays = width * height * supersample**2
+        check_allocation(rays * render_bytes_per_ray(len(self.classes)), "the image size",
+                         f"rendering {width} x {height} pixels of {supersample**2} rays each")
         pose_scene = torch.as_tensor(transform_poses(self.scene_from_world, pose), dtype=torch.float32)
         origins, directions = image_rays(pose_scene, torch.as_tensor(k, dtype=torch.float32), width, height,
                                          supersample)
+        if not bool(torch.isfinite(directions).all()):
+            raise ValueError(f"intrinsics {k.tolist()} give non-finite ray directions (a focal length too small)")
         out = self.model.render_rays_chunked(origins.to(self.device), directions.to(self.device), 8192, exclude_view,
                                               appearance_view)
 
