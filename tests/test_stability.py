@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 
 import numpy as np
 import pytest
@@ -325,6 +326,41 @@ def test_extreme_steps_through_the_model_stay_bounded_and_finite(overrides, warn
     (out["rgb"].sum() + out["depth"].sum() + out["distortion"]).backward()
     assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["depth"]).all()
     assert assert_finite_gradients(model) > 0
+
+
+INF = float("inf")
+
+
+@pytest.mark.parametrize("packed", [False, True])
+def test_infinite_density_or_step_times_zero_renders_nothing_and_keeps_gradients_finite(packed):
+    """sigma * delta where one factor is infinite and the other 0: a padded slot (delta = 0) of
+    infinite density, an empty last interval reaching to infinity. Such a slot adds nothing
+    (0 * inf was NaN, and packed, the running sum carried the NaN into every later ray); an
+    infinite step of positive density is opaque with a finite gradient (0 * inf in the backward),
+    and an infinite density opaque over any step."""
+    sigma = torch.tensor([[1.0, INF, INF], [1.0, 1.0, 0.0], [1.0, 1.0, 2.0], [0.0, 0.0, 0.0], [1e30, 0.0, 1.0],
+                          [INF, 1.0, 1.0]])
+    delta = torch.tensor([[0.1, 0.1, 0.0], [0.1, 0.1, INF], [0.1, 0.1, INF], [INF, INF, INF], [0.1, 1e-30, 1e30],
+                          [1e-30, 0.1, 0.1]])
+    expected = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0],
+                             [1.0, 0.0, 0.0]])
+    expected[:3, :2] = torch.tensor([-math.expm1(-0.1), math.exp(-0.1) * -math.expm1(-0.1)])
+    expected[0, 1] = math.exp(-0.1)  # the infinite density at 0.1 takes all that is left
+    expected[2, 2] = math.exp(-0.2)
+    sigma.requires_grad_(True)
+    colours = torch.rand(6, 3, 3, requires_grad=True)
+    if packed:
+        segments = rendering.Segments.of(torch.arange(6).repeat_interleave(3), 6)
+        weights = rendering.render_weights(sigma.reshape(-1), delta.reshape(-1), segments).view(6, 3)
+        acc = rendering.accumulation(weights.reshape(-1), segments)
+        rgb = rendering.accumulate(weights.reshape(-1), colours.reshape(-1, 3), segments)
+    else:
+        weights = rendering.render_weights(sigma, delta)
+        acc, rgb = rendering.accumulation(weights), rendering.accumulate(weights, colours)
+    torch.testing.assert_close(weights.detach(), expected, rtol=1e-6, atol=1e-7)
+    torch.testing.assert_close(acc.detach(), expected.sum(-1), rtol=1e-6, atol=1e-7)
+    (rgb.sum() + acc.sum()).backward()
+    assert torch.isfinite(sigma.grad).all() and torch.isfinite(colours.grad).all()
 
 
 def test_densities_up_to_1e12_distill_into_a_finite_cache(tmp_path):

@@ -29,6 +29,14 @@ import torch
 # Optical thickness at which a sample is already fully opaque in float32 (exp(-80) ~ 1e-35):
 # clamping here keeps huge sigma*delta products finite without changing any weight.
 MAX_OPTICAL_THICKNESS = 80.0
+# sigma and delta are clamped to these before their product: an infinite density in a padded
+# slot (delta = 0) or an empty interval reaching to infinity (sigma = 0) then adds nothing (0 * inf
+# is NaN, and packed, the running sum would carry it into every later ray), and the backward of a
+# product clamped at MAX_OPTICAL_THICKNESS (0 times the other factor) stays 0. The step's bound is
+# far below float32's largest, as it is the gradient of sigma where sigma is 0; an infinite density
+# stays opaque over any step. No real density or step comes near either.
+MAX_DENSITY = torch.finfo(torch.float32).max
+MAX_STEP = 1e30
 
 
 @dataclass(frozen=True)
@@ -70,8 +78,9 @@ class Segments:
 
 
 def optical_thickness(sigma: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
-    """tau_k = sigma_k * delta_k, in float32, clamped to [0, MAX_OPTICAL_THICKNESS]."""
-    tau = sigma.float() * delta.float()
+    """tau_k = sigma_k * delta_k, in float32, clamped to [0, MAX_OPTICAL_THICKNESS] (0 where
+    either factor is 0, even if the other is infinite: see MAX_DENSITY)."""
+    tau = sigma.float().clamp(max=MAX_DENSITY) * delta.float().clamp(max=MAX_STEP)
     return tau.clamp(0.0, MAX_OPTICAL_THICKNESS)
 
 
