@@ -363,6 +363,25 @@ def test_infinite_density_or_step_times_zero_renders_nothing_and_keeps_gradients
     assert torch.isfinite(sigma.grad).all() and torch.isfinite(colours.grad).all()
 
 
+@pytest.mark.parametrize("far", [1e9, 1e30, INF])
+def test_a_far_plane_at_any_distance_gives_finite_intervals_and_renders(far):
+    """train.far 1e9, 1e30 or infinite (the schema takes any positive number): the contracted
+    shell's last interval ended at t = inf (disparity 1 - s rounded to 0 in float32; NaN for an
+    infinite far), whose midpoint was NaN once contracted, which crashed the grid lookup."""
+    from srfpipe.srf.sampling import generate_intervals
+
+    model = tiny_model(3, far=far).train()
+    origins, directions = rays(8)
+    t_start, t_end = generate_intervals(origins, directions, model.field.box_min, model.field.box_max,
+                                        model.settings)
+    assert torch.isfinite(t_end).all() and (t_end >= t_start).all() and (t_end <= far).all()
+    assert (t_end[:, -1] > 1e6).all()  # still far beyond the box (a half-side of 1)
+    out = model(origins, directions)
+    (out["rgb"].sum() + out["logits"].sum() + out["distortion"]).backward()
+    assert all(torch.isfinite(out[key]).all() for key in ("rgb", "logits", "depth", "accumulation", "distortion"))
+    assert assert_finite_gradients(model) > 0
+
+
 def test_densities_up_to_1e12_distill_into_a_finite_cache(tmp_path):
     from srfpipe.occupancy import AnalyticField, OccupancyCache, distill
 

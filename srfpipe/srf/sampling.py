@@ -102,13 +102,21 @@ def _log_step_edges(start, end, log_step: float, count: int, jitter):
     return torch.minimum(torch.maximum(edges, start[:, None]), torch.maximum(end, start)[:, None])
 
 
+# Disparity 1 - s is kept at float32's epsilon at least: a far plane some 1e7 scales away (or
+# infinite) rounds s_far to 1, and t to infinity (NaN for an infinite far); the last edge then
+# stops at start + scale / eps ~ 8e6 scales, far enough to stand for infinity in the shell.
+_DISPARITY_EPS = torch.finfo(torch.float32).eps
+_MAX_SPAN = 1e30  # keeps span / (span + scale) from inf / inf
+
+
 def _disparity_edges(start, far: float, scale: float, count: int, jitter):
-    """count + 1 intervals tiling [start, far], uniform in s = (t - start) / (t - start + scale)."""
+    """count + 1 intervals tiling [start, far], uniform in s = (t - start) / (t - start + scale)
+    (for a far plane beyond float32's reach, up to ~8e6 scales: see _DISPARITY_EPS)."""
     k = torch.arange(count + 2, device=start.device, dtype=start.dtype)
-    span = (far - start).clamp_min(0)
+    span = (far - start).clamp(0, _MAX_SPAN)
     s_far = span / (span + scale)
     s = ((k[None, :] - 1.0 + jitter[:, None]) / count).clamp(0.0, 1.0) * s_far[:, None]
-    return start[:, None] + scale * s / (1.0 - s)
+    return start[:, None] + scale * s / (1.0 - s).clamp_min(_DISPARITY_EPS)
 
 
 def _intervals(edges):
