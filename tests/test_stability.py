@@ -267,6 +267,23 @@ def test_model_and_loss_under_cpu_autocast_match_fp32(encoding, dtype):
     assert torch.isfinite(parts["loss"]) and assert_finite_gradients(model) > 0
 
 
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
+def test_appearance_smoothness_under_cpu_autocast_is_float32(dtype):
+    """The appearance penalty's product W_a (a_i - a_n(i)) ran in half precision under autocast
+    like the other losses must not: bf16 lost ~0.3 % of it, and in fp16 a difference of a few
+    hundred squared overflowed to inf (here 2 * 40 * 3 * 4 = 960 per row, 9.2e5 squared)."""
+    embedding = torch.tensor([[40.0] * 4, [-40.0] * 4, [0.3, -0.2, 0.1, 0.05]], requires_grad=True)
+    weight = torch.full((8, 4), 3.0, requires_grad=True)
+    pairs = torch.tensor([[0, 1], [1, 2], [2, 0]])
+    expected = losses.appearance_smoothness_loss(embedding, weight, pairs)
+    with torch.autocast("cpu", dtype=dtype):
+        loss = losses.appearance_smoothness_loss(embedding, weight, pairs)
+    loss.backward()
+    assert loss.dtype == torch.float32
+    torch.testing.assert_close(loss, expected, rtol=1e-6, atol=0.0)
+    assert torch.isfinite(embedding.grad).all() and torch.isfinite(weight.grad).all()
+
+
 @pytest.mark.parametrize("precision", ["bf16", "fp16"])
 def test_training_with_half_precision_autocast_on_the_cpu(synthetic, tmp_path, precision):
     """train.precision bf16 / fp16 on the CPU trains and records what it used. fp16 runs without
