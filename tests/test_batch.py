@@ -58,6 +58,20 @@ def test_sheet_lists_scenes_in_order_and_errors_name_file_and_row(tmp_path):
         read_sheet(sheet)
 
 
+def test_sheet_errors_name_the_line_of_the_file_counting_blank_and_comment_lines(tmp_path):
+    """The row an error names is the line an editor or a spreadsheet shows, not the count of the
+    rows that were kept after blank lines and comments."""
+    sheet = tmp_path / "batch.tsv"
+    sheet.write_text("scene\n# first batch\nplant\n\norchard\nfox\n")
+    with pytest.raises(ValueError, match=r"batch.tsv: row 6: no scene file for 'fox'"):
+        read_sheet(sheet, known=["orchard", "plant"])
+    sheet.write_text("scene\tnote\n\nplant\tx\n\n\nplant\ty\n")
+    with pytest.raises(ValueError, match=r"batch.tsv: row 6: scene 'plant' is listed twice"):
+        read_sheet(sheet)
+    sheet.write_text(" scene \tnote\nplant\tx\n")  # the header's names are stripped for the rows too
+    assert read_sheet(sheet) == ["plant"]
+
+
 @pytest.mark.workflow
 def test_batch_target_builds_every_scene_file_or_a_sheets(workflow):
     for name in ("a", "b", "c"):
