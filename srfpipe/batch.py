@@ -36,8 +36,12 @@ def read_sheet(path: str | Path, known: list[str] | None = None) -> list[str]:
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"sheet {path}: file does not exist")
+    try:  # utf-8-sig: a spreadsheet's "CSV UTF-8" starts with a byte order mark
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"sheet {path}: not UTF-8 text ({exc}); save it as UTF-8") from None
     # (line number in the file, line): errors name the row an editor or a spreadsheet shows
-    lines = [(number, line) for number, line in enumerate(path.read_text().splitlines(), start=1)
+    lines = [(number, line) for number, line in enumerate(text.splitlines(), start=1)
              if line.strip() and not line.lstrip().startswith("#")]
     if not lines:
         raise ValueError(f"sheet {path}: empty (expected a header row with a 'scene' column)")

@@ -72,6 +72,17 @@ def test_sheet_errors_name_the_line_of_the_file_counting_blank_and_comment_lines
     assert read_sheet(sheet) == ["plant"]
 
 
+def test_sheet_saved_by_a_spreadsheet_with_a_byte_order_mark_or_not_in_utf8(tmp_path):
+    """Excel's "CSV UTF-8" starts with a byte order mark, which is not part of the first column's
+    name; a sheet in another encoding is an error naming the sheet, not a bare codec error."""
+    sheet = tmp_path / "batch.csv"
+    sheet.write_bytes("scene,note\nplant,caf\u00e9\n".encode("utf-8-sig"))
+    assert read_sheet(sheet, known=["plant"]) == ["plant"]
+    sheet.write_bytes("scene,note\nplant,caf\u00e9\n".encode("latin-1"))
+    with pytest.raises(ValueError, match=r"sheet .*batch.csv: not UTF-8 text"):
+        read_sheet(sheet)
+
+
 @pytest.mark.workflow
 def test_batch_target_builds_every_scene_file_or_a_sheets(workflow):
     for name in ("a", "b", "c"):
