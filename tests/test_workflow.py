@@ -74,3 +74,14 @@ def test_lint_finds_no_rule_files_mixing_rules_and_functions(workflow):
     assert "Mixed rules and functions" not in text
     lints = {line.strip() for line in text.splitlines() if line.strip().startswith("* ")}
     assert lints == {"* Specify a conda environment or container for each rule.:"}
+
+
+def test_reordering_the_prompts_recomposites_the_labels_not_the_masks(workflow):
+    """The label image's class values follow segmentation.prompts' order (config/README.md): a new
+    order re-runs the composite (the masks' input set alone is unchanged) and not the masks."""
+    workflow.write_scene("tiny", {**TINY_ORCHARD, "segmentation": {"prompts": ["apple", "leaf"]}})
+    workflow.run("results/tiny/labels.zarr")
+    workflow.write_scene("tiny", {**TINY_ORCHARD, "segmentation": {"prompts": ["leaf", "apple"]}})
+    assert workflow.dry_run_jobs("results/tiny/labels.zarr") == {"composite": 1}
+    workflow.run("results/tiny/labels.zarr")
+    assert read_provenance(workflow.root / "results/tiny/labels.zarr")["classes"] == ["leaf", "apple"]
