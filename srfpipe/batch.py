@@ -36,16 +36,21 @@ def read_sheet(path: str | Path, known: list[str] | None = None) -> list[str]:
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"sheet {path}: file does not exist")
-    lines = [line for line in path.read_text().splitlines() if line.strip() and not line.lstrip().startswith("#")]
+    try:  # utf-8-sig: a spreadsheet's "CSV UTF-8" starts with a byte order mark
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"sheet {path}: not UTF-8 text ({exc}); save it as UTF-8") from None
+    # (line number in the file, line): errors name the row an editor or a spreadsheet shows
+    lines = [(number, line) for number, line in enumerate(text.splitlines(), start=1)
+             if line.strip() and not line.lstrip().startswith("#")]
     if not lines:
         raise ValueError(f"sheet {path}: empty (expected a header row with a 'scene' column)")
-    delimiter = "\t" if "\t" in lines[0] else ","
-    rows = list(csv.DictReader(lines, delimiter=delimiter))
-    header = [name.strip() for name in (csv.DictReader(lines[:1], delimiter=delimiter).fieldnames or [])]
+    delimiter = "\t" if "\t" in lines[0][1] else ","
+    header = [name.strip() for name in (csv.DictReader([lines[0][1]], delimiter=delimiter).fieldnames or [])]
     if "scene" not in header:
         raise ValueError(f"sheet {path}: no 'scene' column in the header {header}")
     scenes: list[str] = []
-    for row_number, row in enumerate(rows, start=2):
+    for row_number, row in _numbered_rows(lines, delimiter):
         name = (row.get("scene") or "").strip()
         if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
             raise ValueError(f"sheet {path}: row {row_number}: scene {name!r} is not a scene name")
@@ -57,6 +62,28 @@ def read_sheet(path: str | Path, known: list[str] | None = None) -> list[str]:
     if not scenes:
         raise ValueError(f"sheet {path}: lists no scenes")
     return scenes
+
+
+def _numbered_rows(lines: list[tuple[int, str]], delimiter: str):
+    """(line number of its first line, row as a dict) for each row after the header of the kept
+    lines (a quoted field may span lines)."""
+    consumed = 0
+
+    def feed():
+        nonlocal consumed
+        for _, line in lines:
+            consumed += 1
+            yield line
+
+    reader = csv.DictReader(feed(), delimiter=delimiter)
+    reader.fieldnames = [name.strip() for name in reader.fieldnames or []]  # reads the header row
+    while True:
+        start = consumed
+        try:
+            row = next(reader)
+        except StopIteration:
+            return
+        yield lines[start][0], row
 
 
 @dataclass

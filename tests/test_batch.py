@@ -58,6 +58,31 @@ def test_sheet_lists_scenes_in_order_and_errors_name_file_and_row(tmp_path):
         read_sheet(sheet)
 
 
+def test_sheet_errors_name_the_line_of_the_file_counting_blank_and_comment_lines(tmp_path):
+    """The row an error names is the line an editor or a spreadsheet shows, not the count of the
+    rows that were kept after blank lines and comments."""
+    sheet = tmp_path / "batch.tsv"
+    sheet.write_text("scene\n# first batch\nplant\n\norchard\nfox\n")
+    with pytest.raises(ValueError, match=r"batch.tsv: row 6: no scene file for 'fox'"):
+        read_sheet(sheet, known=["orchard", "plant"])
+    sheet.write_text("scene\tnote\n\nplant\tx\n\n\nplant\ty\n")
+    with pytest.raises(ValueError, match=r"batch.tsv: row 6: scene 'plant' is listed twice"):
+        read_sheet(sheet)
+    sheet.write_text(" scene \tnote\nplant\tx\n")  # the header's names are stripped for the rows too
+    assert read_sheet(sheet) == ["plant"]
+
+
+def test_sheet_saved_by_a_spreadsheet_with_a_byte_order_mark_or_not_in_utf8(tmp_path):
+    """Excel's "CSV UTF-8" starts with a byte order mark, which is not part of the first column's
+    name; a sheet in another encoding is an error naming the sheet, not a bare codec error."""
+    sheet = tmp_path / "batch.csv"
+    sheet.write_bytes("scene,note\nplant,caf\u00e9\n".encode("utf-8-sig"))
+    assert read_sheet(sheet, known=["plant"]) == ["plant"]
+    sheet.write_bytes("scene,note\nplant,caf\u00e9\n".encode("latin-1"))
+    with pytest.raises(ValueError, match=r"sheet .*batch.csv: not UTF-8 text"):
+        read_sheet(sheet)
+
+
 @pytest.mark.workflow
 def test_batch_target_builds_every_scene_file_or_a_sheets(workflow):
     for name in ("a", "b", "c"):

@@ -62,3 +62,26 @@ def test_a_bad_workflow_config_fails_at_start_naming_the_file_and_key(workflow):
     result = workflow.run("-n", "results/tiny/images.zarr", "--config", "final_artifact=mesh", check=False)
     assert result.returncode != 0
     assert "config.yaml with --config: final_artifact: 'mesh' is not one of" in result.stdout + result.stderr
+
+
+def test_lint_finds_no_rule_files_mixing_rules_and_functions(workflow):
+    """STYLE: `snakemake --lint` stays clean; the helpers rules share live in common.smk (the one
+    lint left is conda/container per rule: the project installs into one environment)."""
+    workflow.write_scene("tiny", TINY_ORCHARD)
+    output = workflow.run("--lint", check=False)
+    text = output.stdout + output.stderr
+    assert "Lints for rule" in text, "the lint ran"
+    assert "Mixed rules and functions" not in text
+    lints = {line.strip() for line in text.splitlines() if line.strip().startswith("* ")}
+    assert lints == {"* Specify a conda environment or container for each rule.:"}
+
+
+def test_reordering_the_prompts_recomposites_the_labels_not_the_masks(workflow):
+    """The label image's class values follow segmentation.prompts' order (config/README.md): a new
+    order re-runs the composite (the masks' input set alone is unchanged) and not the masks."""
+    workflow.write_scene("tiny", {**TINY_ORCHARD, "segmentation": {"prompts": ["apple", "leaf"]}})
+    workflow.run("results/tiny/labels.zarr")
+    workflow.write_scene("tiny", {**TINY_ORCHARD, "segmentation": {"prompts": ["leaf", "apple"]}})
+    assert workflow.dry_run_jobs("results/tiny/labels.zarr") == {"composite": 1}
+    workflow.run("results/tiny/labels.zarr")
+    assert read_provenance(workflow.root / "results/tiny/labels.zarr")["classes"] == ["leaf", "apple"]

@@ -43,3 +43,13 @@ def scene_masks(scenes: dict, results: str):
         return [f"{results}/{wildcards.scene}/masks/{prompt}.zarr" for prompt in prompts]
 
     return masks
+
+
+def scene_prompts(scenes: dict):
+    """The composite rule's prompts in class order, as JSON (a rerun trigger): the label values
+    follow this order, and a new order leaves the set of mask inputs, which Snakemake compares as a
+    set, unchanged."""
+    def prompts(wildcards) -> str:
+        return json.dumps(scenes[wildcards.scene]["segmentation"]["prompts"])
+
+    return prompts

@@ -1,8 +1,9 @@
-# Config loading and validation, scene table, and the small helpers the rules share.
+# Config loading and validation, the scene table and the batch sheet, and the small helpers the rules share.
 import json
 import re
 from pathlib import Path
 
+from srfpipe.batch import print_summary, read_sheet
 from srfpipe.config import ConfigError, load_scene, validate_workflow_config
 
 
@@ -95,3 +96,33 @@ def capture_dir(wildcards):
     if source["format"] in GENERATED_FORMATS + EXTRACTED_FORMATS:
         return f"{RESULTS}/{wildcards.scene}/capture"
     return source["path"]
+
+
+def holdout_every(wildcards):
+    """The train rule's held-out views: evaluate.holdout_every (training leaves them out)."""
+    return SCENES[wildcards.scene]["evaluate"]["holdout_every"]
+
+
+def batch_scenes():
+    """The scenes of the batch target: every scene file, or the rows of the sheet (config `sheet`)."""
+    if not config.get("sheet"):
+        return sorted(SCENES)
+    try:
+        return read_sheet(config["sheet"], known=list(SCENES))
+    except ValueError as exc:
+        raise WorkflowError(str(exc)) from None
+
+
+def run_summary(log):
+    """One line per scene when the run built whole scenes (the batch or the default target); a run
+    for single files (results/orchard/eval) is summarised by Snakemake's own job list."""
+    try:
+        targets = {job.rule.name for job in workflow.dag.targetjobs}
+        scenes = sorted({job.wildcards.get("scene") for job in workflow.dag.jobs} - {None})
+    except AttributeError:
+        targets, scenes = {"batch"}, BATCH_SCENES
+    if not targets & {"batch", "all"}:
+        return
+    chain = list(ARTIFACTS.values())
+    chain = chain[: chain.index(ARTIFACTS[config["final_artifact"]]) + 1]
+    print_summary(scenes, RESULTS, "logs", chain)

@@ -1,7 +1,7 @@
 # Per-prompt masks (one job per prompt) and their composite into labels.zarr.
 # Each segment job's params hold only what matters for its prompt (srfpipe.segment.run.prompt_options),
 # so adding or changing one prompt reruns that prompt's job and the composite, nothing else.
-from srfpipe.segment.rules import scene_masks, segment_model, segment_params
+from srfpipe.segment.rules import scene_masks, scene_prompts, segment_model, segment_params
 
 
 wildcard_constraints:
@@ -39,6 +39,7 @@ rule composite:
         directory(f"{RESULTS}/{{scene}}/labels.zarr"),
     params:
         options=scene_section("labels"),
+        prompts=scene_prompts(SCENES),  # the class order: a reordering re-runs the composite
     log:
         "logs/{scene}/composite.log",
     benchmark:

@@ -8,10 +8,6 @@
 # use `--set-threads train=1`.
 
 
-def holdout_every(wildcards):
-    return SCENES[wildcards.scene]["evaluate"]["holdout_every"]
-
-
 rule train:
     input:
         images=rules.downscale.output[0],
