@@ -210,6 +210,37 @@ def test_model_with_wrong_inputs_lists_what_was_expected(tmp_path):
 
 
 @pytest.mark.bad_input
+@pytest.mark.parametrize("answer, problem", [
+    ("one_map", r"output 'out' has shape \(1, 2, 30, 40\) for a batch of 2 images; expected one output "
+                r"\(batch, classes, h, w\)"),
+    ("twice", r"output 'out' has shape \(4, 2, 30, 40\) for a batch of 2 images"),
+    ("nan", r"output 'out' holds NaN"),
+])
+def test_model_whose_output_does_not_answer_the_batch_is_refused(tmp_path, answer, problem):
+    """A model whose batch dimension is dynamic but answers one map for the whole batch (or two per
+    image), or NaN, is refused naming the model: not a crash in the averaging, not masks of the
+    wrong images or empty masks."""
+    import torch
+
+    class Broken(torch.nn.Module):
+        def forward(self, image):
+            two = image[:, :2]
+            if answer == "one_map":
+                return two.mean(0, keepdim=True)
+            if answer == "twice":
+                return torch.cat([two, two])
+            return (two - two) / (two - two)
+
+    path = export(Broken(), (torch.zeros(2, 3, 30, 40),), tmp_path / f"{answer}.onnx", ["image"], ["out"],
+                  dynamic_axes={"image": {0: "batch"}, "out": {0: "batch"}})
+    images = write_images(tmp_path / "images.zarr", red_blue_images(n=3))
+    opts = prompt_options(options(model=str(path), classes=["apple", "leaf"], batch_size=2), "apple")
+    with pytest.raises(ValueError, match=f"{answer}.onnx: " + problem):
+        segment_images(images, "apple", opts, tmp_path / "apple.zarr", progress=False)
+    assert not (tmp_path / "apple.zarr").exists()
+
+
+@pytest.mark.bad_input
 def test_text_model_without_token_input_is_rejected(tmp_path, colour_class_model):
     images = write_images(tmp_path / "images.zarr", red_blue_images(n=1))
     opts = options(model=str(colour_class_model), kind="text", tokenizer="unused.json")

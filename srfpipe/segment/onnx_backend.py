@@ -381,6 +381,11 @@ class OnnxSegmenter:
         except Exception as exc:
             raise ValueError(f"{self.path}: inference failed on input {x.shape} ({exc})") from exc
         out = np.asarray(out, dtype=np.float32)
+        if out.ndim not in (3, 4) or out.shape[0] != len(batch):
+            raise ValueError(f"{self.path}: output {self.output_name!r} has shape {out.shape} for a batch of "
+                             f"{len(batch)} images; expected {_EXPECTED[self.kind].split('; ')[-1]}")
+        if np.isnan(out).any():
+            raise ValueError(f"{self.path}: output {self.output_name!r} holds NaN for input {x.shape}")
         if out.ndim == 3:
             out = out[:, None]
         if self.kind == "text" and out.shape[1] != 1:
