@@ -489,6 +489,28 @@ def test_prompts_that_all_come_out_empty_are_still_an_error(tmp_path):
 
 
 @pytest.mark.bad_input
+def test_prompts_whose_masks_cover_no_frame_together_are_refused(tmp_path):
+    """A frame is labelled only where every prompt has a mask: imported masks of two prompts for
+    disjoint frames leave no frame labelled, and labels that train no semantic head are refused,
+    naming each mask artifact and how many frames it covers, and nothing is written."""
+    images = blank_images(tmp_path / "images.zarr", n=4)
+    masks = []
+    for prompt, known in (("apple", [True, True, False, False]), ("leaf", [False, False, True, True])):
+        path = write_mask(tmp_path / f"{prompt}.zarr", prompt, np.ones((4, 4, 5), np.float32))
+        group = zarr.open_group(str(path), mode="r+")
+        group.attrs["srfpipe"] = {**group.attrs["srfpipe"], "labelled": known}
+        reseal_artifact(path)  # as the import back end records frames without a mask file
+        masks.append(path)
+    with pytest.raises(ValueError, match=r"no frame has a mask of every prompt \['apple', 'leaf'\] \(frames with a "
+                                         r"mask: .*apple.zarr: 2 of 4; .*leaf.zarr: 2 of 4\)"):
+        composite_masks(images, masks, {}, tmp_path / "labels.zarr", progress=False)
+    assert not (tmp_path / "labels.zarr").exists()
+    # one prompt alone keeps its labelled frames
+    out = composite_masks(images, masks[:1], {}, tmp_path / "labels.zarr", progress=False)
+    assert meta(open_artifact(out))["labelled"] == [True, True, False, False]
+
+
+@pytest.mark.bad_input
 def test_masks_must_match_the_frames_of_images_zarr(tmp_path):
     images = blank_images(tmp_path / "images.zarr")
     good = write_mask(tmp_path / "apple.zarr", "apple", np.full((2, 4, 5), 0.9, np.float32))

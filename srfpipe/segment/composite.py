@@ -144,7 +144,7 @@ def _check_mask_frames(path, shape, names, frames: Frames) -> None:
 def _open_masks(paths: list[str | Path], frames: Frames):
     from srfpipe.artifacts import meta, open_artifact, require_input
 
-    arrays, prompts, thresholds, value_ranges = [], [], [], []
+    arrays, prompts, thresholds, value_ranges, counts = [], [], [], [], []
     labelled = np.ones(frames.count, dtype=bool)
     for path in paths:
         group = open_artifact(path, stage="segment")
@@ -162,6 +162,10 @@ def _open_masks(paths: list[str | Path], frames: Frames):
         value_ranges.append(info.get("mask_values"))  # imported masks: bit depth, values, how read
         if info.get("labelled") is not None:  # masks of some frames only (import)
             labelled &= np.asarray(info["labelled"], dtype=bool)
+            counts.append(f"{path}: {int(np.sum(info['labelled']))} of {frames.count}")
+    if paths and not labelled.any():  # every frame unlabelled: the semantic heads would learn nothing
+        raise ValueError(f"composite: no frame has a mask of every prompt {prompts} (frames with a mask: "
+                         f"{'; '.join(counts)}); a frame is labelled only where every prompt's masks cover it")
     return arrays, prompts, thresholds, labelled, value_ranges
 
 
