@@ -323,6 +323,23 @@ def test_too_large_grid_is_coarsened_with_a_warning(tmp_path, caplog):
     assert OccupancyCache.load(path).occupancy(CENTRE[None])[0]
 
 
+@pytest.mark.bad_input
+def test_a_grid_longer_than_the_morton_codes_hold_is_refused_before_the_field_is_queried(tmp_path):
+    """A long thin scene fits max_voxels but has more voxels along x than the octree's 21-bit Morton
+    codes index: refused naming the key before any brick is distilled (not after the 65 536 bricks
+    before the first voxel beyond), and nothing is written."""
+
+    class Unqueried(AnalyticField):
+        def density(self, points):
+            raise AssertionError("the field was queried")
+
+    field = Unqueried(list(CLASSES), np.array([[0.0, 0.0, 0.0], [1.0, 1e-7, 1e-7]]))
+    with pytest.raises(ValueError, match=r"occupancy.voxel_size: a grid of 1 x 1 x 10000000 voxels \(z, y, x\) "
+                                         r"has more than the 2097152 voxels along an axis"):
+        distill(field, tmp_path / "long.zarr", {"voxel_size": 1e-7, "brick": 64}, progress=False)
+    assert not (tmp_path / "long.zarr").exists()
+
+
 def test_the_scene_that_asked_for_billions_of_voxels_fits():
     # the issue's capture: 128 units wide, cameras 100 units away, and a 0.02-unit voxel asked for
     bounds = np.array([[-64.0, -64.0, -60.0], [64.0, 64.0, 99.25]])

@@ -20,7 +20,8 @@ from typing import Callable, Protocol, Sequence, runtime_checkable
 import numpy as np
 from tqdm.auto import tqdm
 
-from srfpipe.occupancy.grid import VoxelGrid, check_bounds, morton_encode, voxel_counts, voxel_size_within
+from srfpipe.occupancy.grid import (MORTON_BITS, VoxelGrid, check_bounds, morton_encode, voxel_counts,
+                                    voxel_size_within)
 
 log = logging.getLogger(__name__)
 
@@ -408,6 +409,10 @@ def distill(field: SemanticField, out_path: str | Path, options: dict | None = N
     region = cache_region(field)
     resolution = choose_voxel_size(region, options)
     grid = VoxelGrid.from_bounds(region, resolution["voxel_size"])
+    if max(grid.shape) > 1 << MORTON_BITS:  # found now, not after the bricks before the first voxel beyond
+        raise ValueError(f"occupancy.{resolution['asked_from']}: a grid of {' x '.join(map(str, grid.shape))} voxels "
+                         f"(z, y, x) has more than the {1 << MORTON_BITS} voxels along an axis that the octree's "
+                         f"Morton codes hold; ask for coarser voxels")
     truncation = choose_truncation(grid.voxel_size, options)
     unit, unit_source = world_unit(field, options)
     v, brick, trunc = grid.voxel_size, options["brick"], truncation["truncation"]
