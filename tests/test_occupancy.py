@@ -340,6 +340,32 @@ def test_a_grid_longer_than_the_morton_codes_hold_is_refused_before_the_field_is
     assert not (tmp_path / "long.zarr").exists()
 
 
+def test_bricks_are_distilled_one_at_a_time_not_listed_first(tmp_path, monkeypatch):
+    """A grid raised to billions of bricks (occupancy.max_voxels) must not list every brick's slices
+    before the first is distilled: memory stays bounded by a few bricks (the module docstring)."""
+    handed_out = []
+    bricks = VoxelGrid.bricks
+
+    def counted(self, brick):
+        for zyx in bricks(self, brick):
+            handed_out.append(zyx)
+            yield zyx
+
+    class Stop(Exception):
+        pass
+
+    class FirstQueryStops(AnalyticField):
+        def density(self, points):
+            raise Stop(len(handed_out))
+
+    monkeypatch.setattr(VoxelGrid, "bricks", counted)
+    with pytest.raises(Stop) as stopped:
+        distill(FirstQueryStops(list(CLASSES), BOUNDS), tmp_path / "c.zarr", {"voxels_across": 64, "brick": 16},
+                progress=False)
+    assert stopped.value.args == (1,)  # of 64 bricks
+    assert not (tmp_path / "c.zarr").exists()
+
+
 def test_the_scene_that_asked_for_billions_of_voxels_fits():
     # the issue's capture: 128 units wide, cameras 100 units away, and a 0.02-unit voxel asked for
     bounds = np.array([[-64.0, -64.0, -60.0], [64.0, 64.0, 99.25]])

@@ -491,7 +491,8 @@ def _write_bricks(field, grid, options, thresholds, arrays, levels, progress):
     (any, then per class)."""
     n_c = arrays["probability"].shape[0]
     leaf_codes, leaf_classes, counts = [], [], np.zeros(1 + n_c, dtype=np.int64)
-    for zyx in tqdm(list(grid.bricks(options["brick"])), desc="distill bricks", disable=not progress, unit="brick"):
+    for zyx in tqdm(grid.bricks(options["brick"]), total=grid.n_bricks(options["brick"]), desc="distill bricks",
+                    disable=not progress, unit="brick"):  # one brick's slices at a time, not a list of them all
         out = distill_brick(field, grid, zyx, options, thresholds)
         prob_u8 = np.rint(out["probability"] * 255).astype(np.uint8)
         occ = out["occupancy"].astype(np.uint8)
@@ -517,7 +518,8 @@ def _write_distances(group, class_occupancy, grid, classes, dist_classes, brick,
                        ("c", "z", "y", "x"), float(trunc))
     for d_index, (name, _role) in enumerate(dist_classes):
         channel = classes.index(name)
-        for zyx in tqdm(list(grid.bricks(brick)), desc=f"distance {name}", disable=not progress, unit="brick"):
+        for zyx in tqdm(grid.bricks(brick), total=grid.n_bricks(brick), desc=f"distance {name}", disable=not progress,
+                        unit="brick"):
             d = signed_distance_brick(class_occupancy, channel, grid, zyx, trunc)
             if d is not None:
                 distance[(d_index,) + zyx] = d
