@@ -207,6 +207,12 @@ def test_model_with_wrong_inputs_lists_what_was_expected(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"missing.onnx: ONNX model file does not exist"):
         segment_images(images, "apple", prompt_options(options(model=str(tmp_path / "missing.onnx")), "apple"),
                        tmp_path / "a.zarr", progress=False)
+    with pytest.raises(FileNotFoundError, match=r"models: ONNX model file is not a file \(a folder\?\) "
+                                                r"\(segmentation.model\)"):
+        (tmp_path / "models").mkdir()
+        segment_images(images, "apple", prompt_options(options(model=str(tmp_path / "models")), "apple"),
+                       tmp_path / "a.zarr", progress=False)
+    assert not (tmp_path / "a.zarr").exists()
 
 
 @pytest.mark.bad_input

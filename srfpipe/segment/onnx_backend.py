@@ -56,7 +56,8 @@ def resolve_model(model: str) -> Path:
     """`builtin` -> the shipped model; otherwise a path that must exist."""
     path = builtin_model_path() if model == "builtin" else Path(model)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: ONNX model file does not exist (segmentation.model)")
+        problem = "is not a file (a folder?)" if path.exists() else "does not exist"
+        raise FileNotFoundError(f"{path}: ONNX model file {problem} (segmentation.model)")
     return path
 
 
