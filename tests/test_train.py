@@ -169,6 +169,19 @@ def test_checkpoint_from_other_settings_is_not_resumed(scene, tmp_path):
     assert read_srf(tmp_path / "b.zarr")[1]["resumed_from_step"] == 0
 
 
+def test_checkpoints_of_another_run_at_later_steps_do_not_prune_this_runs(tmp_path):
+    from srfpipe.srf.hooks import save_checkpoint
+
+    # a run with other settings got further in the same folder (its checkpoints are never resumed)
+    for step in (30, 40):
+        save_checkpoint(tmp_path, {"step": step, "fingerprint": "other"})
+    save_checkpoint(tmp_path, {"step": 10, "fingerprint": "this"})
+    save_checkpoint(tmp_path, {"step": 20, "fingerprint": "this"})
+    save_checkpoint(tmp_path, {"step": 25, "fingerprint": "this"})
+    names = sorted(p.name for p in tmp_path.glob("step-*.pt"))
+    assert names == ["step-000000020.pt", "step-000000025.pt", "step-000000030.pt", "step-000000040.pt"]
+
+
 def test_snapshots_hold_the_weights_at_each_mark_and_outlive_the_run(scene, tmp_path):
     _, images, labels = scene
     ckpt = tmp_path / "ckpt"

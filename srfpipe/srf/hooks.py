@@ -60,7 +60,9 @@ def save_checkpoint(folder: Path, state: dict, keep: int = 2) -> None:
             raise OSError(getattr(exc, "errno", None) or errno.EIO,
                           f"cannot write the checkpoint ({exc}; {free} bytes free on its disk)", str(path)) from exc
         raise
-    for old in sorted(folder.glob("step-*.pt"))[:-keep]:
+    # the newest `keep` up to this step: a checkpoint of a later step is another run's (other settings,
+    # same folder), and counting it would delete this run's own before the next could replace them
+    for old in sorted(p for p in folder.glob("step-*.pt") if p.name <= path.name)[:-keep]:
         old.unlink(missing_ok=True)
 
 
