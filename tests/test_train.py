@@ -182,6 +182,32 @@ def test_checkpoints_of_another_run_at_later_steps_do_not_prune_this_runs(tmp_pa
     assert names == ["step-000000020.pt", "step-000000025.pt", "step-000000030.pt", "step-000000040.pt"]
 
 
+def test_a_checkpoint_of_this_run_that_does_not_fit_is_passed_over_naming_it(scene, tmp_path, caplog):
+    _, images, labels = scene
+    ckpt = tmp_path / "ckpt"
+    options = tiny_options(iterations=12, checkpoint_every=5, keep_checkpoints=True)
+    train(images, labels, tmp_path / "a.zarr", options, holdout_every=5, checkpoints=ckpt)
+    # the right fingerprint, tensors of the wrong shape (another srfpipe version, or damaged)
+    newest = ckpt / "step-000000010.pt"
+    state = torch.load(newest, weights_only=True)
+    name = next(iter(state["model"]))
+    state["model"][name] = torch.zeros(3, 3)
+    torch.save(state, newest)
+    with caplog.at_level("WARNING", logger="srfpipe.train"):
+        train(images, labels, tmp_path / "b.zarr", options, holdout_every=5, checkpoints=ckpt)
+    assert read_srf(tmp_path / "b.zarr")[1]["resumed_from_step"] == 5
+    assert any(str(newest) in r.getMessage() and "does not fit" in r.getMessage() for r in caplog.records)
+    # none fits: a fresh run, from the fresh weights (not half of the checkpoint's)
+    for path in ckpt.glob("step-*.pt"):
+        state = torch.load(path, weights_only=True)
+        del state["curve"]
+        torch.save(state, path)
+    train(images, labels, tmp_path / "c.zarr", options, holdout_every=5, checkpoints=ckpt)
+    assert read_srf(tmp_path / "c.zarr")[1]["resumed_from_step"] == 0
+    a, b = read_srf(tmp_path / "a.zarr")[0].state_dict(), read_srf(tmp_path / "c.zarr")[0].state_dict()
+    assert all(torch.allclose(a[k], b[k], atol=1e-5) for k in a)
+
+
 def test_snapshots_hold_the_weights_at_each_mark_and_outlive_the_run(scene, tmp_path):
     _, images, labels = scene
     ckpt = tmp_path / "ckpt"

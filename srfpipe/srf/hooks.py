@@ -27,20 +27,26 @@ log = logging.getLogger("srfpipe.train")
 
 def latest_checkpoint(folder: Path, fp: str):
     """The checkpoint with the highest step written by a run with fingerprint `fp`, or None."""
+    return next((state for _, state in checkpoints_of(folder, fp)), None)
+
+
+def checkpoints_of(folder: Path, fp: str):
+    """(path, state) of each readable checkpoint written by a run with fingerprint `fp`, the
+    highest step first (a caller that cannot use one goes on to the one before)."""
     import torch
 
     if not folder.is_dir():
-        return None
+        return
     for path in sorted(folder.glob("step-*.pt"), reverse=True):
         try:
             state = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as exc:  # a checkpoint cut short by a kill: try the one before
             log.warning("ignoring unreadable checkpoint %s (%s)", path, exc)
             continue
-        if state.get("fingerprint") == fp:
-            return state
-        log.info("ignoring checkpoint %s from a run with different settings", path)
-    return None
+        if isinstance(state, dict) and state.get("fingerprint") == fp:
+            yield path, state
+        else:
+            log.info("ignoring checkpoint %s from a run with different settings", path)
 
 
 def save_checkpoint(folder: Path, state: dict, keep: int = 2) -> None:

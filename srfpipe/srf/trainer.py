@@ -31,7 +31,7 @@ import numpy as np
 from srfpipe import cameras
 from srfpipe.settings import TrainSettings
 from srfpipe.srf.hooks import (Checkpoints, DivergenceWatch, HeldoutEvaluation, MetricsLog, Snapshots, TimeBudget,
-                               TrainingProgress, latest_checkpoint)
+                               TrainingProgress, checkpoints_of)
 from srfpipe.srf.model import BASE_CELLS, TRUSTED_INITIAL_OPACITY, default_features, scene_box
 from srfpipe.srf.warp import looks_one_way, perspective_fits
 
@@ -826,18 +826,12 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
         else:
             colour, level = data.backdrop
             run.backdrop = (torch.tensor(colour, device=device) / 255.0, level)
-    state = latest_checkpoint(ckpt_dir, fp)
-    if state is not None:
-        model.load_state_dict(state["model"])
-        if cameras is not None:
-            cameras.load_state_dict(state["cameras"])
-        optimizer.load_state_dict(state["optimizer"])
-        for group in optimizer.param_groups:  # a CUDA graph's run saved its device-side settings
-            group["lr"], group["capturable"] = float(group["lr"]), False
-        run.step, run.seconds = int(state["step"]), float(state["train_seconds"])
-        run.resumed_from = run.step
-        run.curve = {k: list(v) for k, v in state["curve"].items()}
-        run.eval_curve = {k: list(v) for k, v in state["eval_curve"].items()}
+    resumed = False
+    for path, state in checkpoints_of(ckpt_dir, fp):
+        if resume(run, state, path):
+            resumed = True
+            break
+    if resumed:
         log.info("resuming from %s at step %d", ckpt_dir, run.step)
     elif ckpt_dir.is_dir():
         # a fresh run: snapshots of an earlier run in this folder would mix into its curve
@@ -851,6 +845,35 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
     elif device.type == "cuda":
         log.info("training step by step, not as a CUDA graph: %s", unavailable)
     return run
+
+
+def resume(run: TrainingRun, state: dict, path: Path) -> bool:
+    """Load a checkpoint of this run's fingerprint into the run; False, with a warning naming the
+    file and the run's fresh state kept, when it does not fit (tensors of other shapes, a missing
+    key: written by another version of srfpipe, or damaged)."""
+    import copy
+
+    model, cameras, optimizer = run.model, run.cameras, run.optimizer
+    fresh = [copy.deepcopy(part.state_dict()) for part in (model, cameras, optimizer) if part is not None]
+    try:
+        model.load_state_dict(state["model"])
+        if cameras is not None:
+            cameras.load_state_dict(state["cameras"])
+        optimizer.load_state_dict(state["optimizer"])
+        step, seconds = int(state["step"]), float(state["train_seconds"])
+        curve = {k: list(v) for k, v in state["curve"].items()}
+        eval_curve = {k: list(v) for k, v in state["eval_curve"].items()}
+    except (RuntimeError, ValueError, KeyError, TypeError, AttributeError, IndexError) as exc:
+        log.warning("ignoring checkpoint %s: it does not fit this run (%s: %s)", path, type(exc).__name__,
+                    str(exc).splitlines()[0] if str(exc) else "")
+        for part, saved in zip([p for p in (model, cameras, optimizer) if p is not None], fresh):
+            part.load_state_dict(saved)
+        return False
+    for group in optimizer.param_groups:  # a CUDA graph's run saved its device-side settings
+        group["lr"], group["capturable"] = float(group["lr"]), False
+    run.step, run.seconds, run.resumed_from = step, seconds, step
+    run.curve, run.eval_curve = curve, eval_curve
+    return True
 
 
 def camera_record(run: TrainingRun) -> dict:
