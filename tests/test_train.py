@@ -208,6 +208,18 @@ def test_a_checkpoint_of_this_run_that_does_not_fit_is_passed_over_naming_it(sce
     assert all(torch.allclose(a[k], b[k], atol=1e-5) for k in a)
 
 
+def test_a_checkpoint_write_cut_short_by_a_kill_leaves_nothing_after_the_run(scene, tmp_path):
+    _, images, labels = scene
+    ckpt = tmp_path / "ckpt"
+    ckpt.mkdir()
+    # SIGKILL inside torch.save, at a step this run does not write again (its time budget, or a
+    # changed checkpoint_every, ended it elsewhere)
+    (ckpt / "step-000000004.pt.tmp").write_bytes(b"\x80\x02half a checkpoint")
+    train(images, labels, tmp_path / "srf.zarr", tiny_options(iterations=6, checkpoint_every=5), holdout_every=5,
+          checkpoints=ckpt)
+    assert not ckpt.exists()
+
+
 def test_snapshots_hold_the_weights_at_each_mark_and_outlive_the_run(scene, tmp_path):
     _, images, labels = scene
     ckpt = tmp_path / "ckpt"

@@ -910,7 +910,8 @@ def write_field(run: TrainingRun, images, labels) -> None:
         seen_fraction=run.seen_fraction, **camera_record(run),
     )
     if not run.settings.keep_checkpoints and run.checkpoint_dir.is_dir():
-        for path in run.checkpoint_dir.glob("step-*.pt"):
+        # with the temporary file of a checkpoint whose writing a kill cut short
+        for path in [*run.checkpoint_dir.glob("step-*.pt"), *run.checkpoint_dir.glob("step-*.pt.tmp")]:
             path.unlink()
         with contextlib.suppress(OSError):
             run.checkpoint_dir.rmdir()
