@@ -190,7 +190,7 @@ class TrainingProgress(Hook):
     def __init__(self, start_step: int, iterations: int, seconds: float, time_budget: float):
         from tqdm import tqdm
 
-        self.by_time = time_budget > 0
+        self.by_time = 0 < time_budget < math.inf  # an infinite budget (`.inf`, 1e400) never ends the run
         if self.by_time:
             self.bar = tqdm(total=round(time_budget), initial=min(round(seconds), round(time_budget)),
                             desc="train", unit="s", dynamic_ncols=True, mininterval=1.0,
