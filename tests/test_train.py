@@ -169,6 +169,18 @@ def test_checkpoint_from_other_settings_is_not_resumed(scene, tmp_path):
     assert read_srf(tmp_path / "b.zarr")[1]["resumed_from_step"] == 0
 
 
+def test_a_changed_keep_checkpoints_still_resumes(scene, tmp_path):
+    _, images, labels = scene
+    ckpt = tmp_path / "ckpt"
+    # a run killed after step 10 (kept: the folder it leaves), re-run without keep_checkpoints
+    train(images, labels, tmp_path / "a.zarr", tiny_options(iterations=12, checkpoint_every=5, keep_checkpoints=True),
+          holdout_every=5, checkpoints=ckpt)
+    train(images, labels, tmp_path / "b.zarr", tiny_options(iterations=12, checkpoint_every=5, log_every=3),
+          holdout_every=5, checkpoints=ckpt)
+    assert read_srf(tmp_path / "b.zarr")[1]["resumed_from_step"] == 10
+    assert not ckpt.exists()
+
+
 def test_checkpoints_of_another_run_at_later_steps_do_not_prune_this_runs(tmp_path):
     from srfpipe.srf.hooks import save_checkpoint
 

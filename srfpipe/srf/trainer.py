@@ -141,7 +141,7 @@ def group_lr_scale(group: dict, progress: float) -> float:
 def fingerprint(options: dict, model_config: dict, inputs: list[dict]) -> str:
     """Identity of a training run: resume only from checkpoints with the same one."""
     relevant = {k: v for k, v in options.items()
-                if k not in ("checkpoint_every", "log_every", "eval_every", "snapshot_seconds")}
+                if k not in ("checkpoint_every", "keep_checkpoints", "log_every", "eval_every", "snapshot_seconds")}
     blob = json.dumps([relevant, model_config, inputs], sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
