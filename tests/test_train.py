@@ -181,6 +181,16 @@ def test_a_changed_keep_checkpoints_still_resumes(scene, tmp_path):
     assert not ckpt.exists()
 
 
+@pytest.mark.parametrize("device", ["tpu", "cuda:7"])
+def test_a_device_that_is_not_there_is_refused_naming_the_key(scene, tmp_path, device):
+    _, images, labels = scene
+    if device.startswith("cuda") and torch.cuda.device_count() > 7:
+        pytest.skip("this machine has a GPU 7")
+    with pytest.raises(ValueError, match=rf"train.device: .*{device}"):
+        train(images, labels, tmp_path / "srf.zarr", tiny_options(device=device), holdout_every=5)
+    assert not (tmp_path / "srf.zarr").exists()
+
+
 def test_checkpoints_of_another_run_at_later_steps_do_not_prune_this_runs(tmp_path):
     from srfpipe.srf.hooks import save_checkpoint
 

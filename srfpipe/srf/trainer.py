@@ -772,7 +772,10 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
     from srfpipe.srf.graphed import GraphedSteps, graph_unavailable
     from srfpipe.srf.model import SRFModel, build_model_config
 
-    device = choose_device(settings.device)
+    try:
+        device = choose_device(settings.device)
+    except RuntimeError as exc:  # no GPU, or a device torch does not know: name the key
+        raise ValueError(f"train.device: {exc}") from exc
     problem = split_pixel_problem(settings.rays_per_batch, settings.supersample)
     if problem:  # callers of train() that skip the scene schema
         raise ValueError(problem)
