@@ -191,6 +191,21 @@ def test_a_device_that_is_not_there_is_refused_naming_the_key(scene, tmp_path, d
     assert not (tmp_path / "srf.zarr").exists()
 
 
+def test_a_checkpoint_folder_that_is_a_file_or_negative_threads_are_refused_before_training(scene, tmp_path, capsys):
+    from srfpipe.cli import main
+
+    _, images, labels = scene
+    blocker = tmp_path / "srf.ckpt"
+    blocker.write_text("not a folder")
+    with pytest.raises(ValueError, match=rf"{blocker}: the checkpoint folder is a file"):
+        train(images, labels, tmp_path / "srf.zarr", tiny_options(), holdout_every=5)
+    assert not (tmp_path / "srf.zarr").exists()
+    args = ["train", "--images", str(images), "--labels", str(labels), "--out", str(tmp_path / "b.zarr"),
+            "--options", json.dumps(tiny_options(checkpoint_every=0))]
+    assert main(args + ["--threads", "-1"]) == 1
+    assert "srfpipe train: error: --threads -1: " in capsys.readouterr().err
+
+
 def test_checkpoints_of_another_run_at_later_steps_do_not_prune_this_runs(tmp_path):
     from srfpipe.srf.hooks import save_checkpoint
 

@@ -57,6 +57,8 @@ def run(args) -> int:
     from srfpipe.config import stage_options, validate_scene, load_scene
 
     options = stage_options(args, "train")
+    if args.threads is not None and args.threads < 0:
+        raise ValueError(f"--threads {args.threads}: torch CPU threads must be 1 or more (0: torch's default)")
     holdout = args.holdout_every
     if holdout is None:
         scene = load_scene(args.scene) if args.scene else validate_scene({})
@@ -772,6 +774,10 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
     from srfpipe.srf.graphed import GraphedSteps, graph_unavailable
     from srfpipe.srf.model import SRFModel, build_model_config
 
+    ckpt_dir = Path(checkpoints) if checkpoints else out.with_name(out.name.removesuffix(".zarr") + ".ckpt")
+    if (settings.checkpoint_every or settings.snapshot_seconds) and ckpt_dir.exists() and not ckpt_dir.is_dir():
+        # found now, not at the first checkpoint (train.checkpoint_every steps of training lost)
+        raise ValueError(f"{ckpt_dir}: the checkpoint folder is a file; remove it or name another folder (--checkpoints)")
     try:
         device = choose_device(settings.device)
     except RuntimeError as exc:  # no GPU, or a device torch does not know: name the key
@@ -819,7 +825,6 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
     scaler = torch.amp.GradScaler("cuda") if precision == "fp16" and device.type == "cuda" else None
     inputs = [{"path": str(p), "created": read_provenance(p).get("created")} for p in (images, labels) if p is not None]
     fp = fingerprint(settings.as_dict(), config, inputs + [{"holdout_every": holdout_every}])
-    ckpt_dir = Path(checkpoints) if checkpoints else out.with_name(out.name.removesuffix(".zarr") + ".ckpt")
     run = TrainingRun(settings, data, holdout_every, train_views, heldout_views, device, model, optimizer, scaler, autocast, precision,
                       fp, ckpt_dir, out, focus, labelled_frames, seen_fraction, watch=None, cameras=cameras)
     if settings.background_opacity and settings.background_rays == "backdrop":
