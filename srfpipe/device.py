@@ -17,6 +17,8 @@ def choose_device(requested: str = "auto"):
     device = torch.device(requested)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise RuntimeError(f"device {requested!r} was requested but torch sees no CUDA GPU")
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        raise RuntimeError(f"device {requested!r} was requested but torch sees {torch.cuda.device_count()} CUDA GPU(s)")
     return device
 
 

@@ -169,6 +169,94 @@ def test_checkpoint_from_other_settings_is_not_resumed(scene, tmp_path):
     assert read_srf(tmp_path / "b.zarr")[1]["resumed_from_step"] == 0
 
 
+def test_a_changed_keep_checkpoints_still_resumes(scene, tmp_path):
+    _, images, labels = scene
+    ckpt = tmp_path / "ckpt"
+    # a run killed after step 10 (kept: the folder it leaves), re-run without keep_checkpoints
+    train(images, labels, tmp_path / "a.zarr", tiny_options(iterations=12, checkpoint_every=5, keep_checkpoints=True),
+          holdout_every=5, checkpoints=ckpt)
+    train(images, labels, tmp_path / "b.zarr", tiny_options(iterations=12, checkpoint_every=5, log_every=3),
+          holdout_every=5, checkpoints=ckpt)
+    assert read_srf(tmp_path / "b.zarr")[1]["resumed_from_step"] == 10
+    assert not ckpt.exists()
+
+
+@pytest.mark.parametrize("device", ["tpu", "cuda:7"])
+def test_a_device_that_is_not_there_is_refused_naming_the_key(scene, tmp_path, device):
+    _, images, labels = scene
+    if device.startswith("cuda") and torch.cuda.device_count() > 7:
+        pytest.skip("this machine has a GPU 7")
+    with pytest.raises(ValueError, match=rf"train.device: .*{device}"):
+        train(images, labels, tmp_path / "srf.zarr", tiny_options(device=device), holdout_every=5)
+    assert not (tmp_path / "srf.zarr").exists()
+
+
+def test_a_checkpoint_folder_that_is_a_file_or_negative_threads_are_refused_before_training(scene, tmp_path, capsys):
+    from srfpipe.cli import main
+
+    _, images, labels = scene
+    blocker = tmp_path / "srf.ckpt"
+    blocker.write_text("not a folder")
+    with pytest.raises(ValueError, match=rf"{blocker}: the checkpoint folder is a file"):
+        train(images, labels, tmp_path / "srf.zarr", tiny_options(), holdout_every=5)
+    assert not (tmp_path / "srf.zarr").exists()
+    args = ["train", "--images", str(images), "--labels", str(labels), "--out", str(tmp_path / "b.zarr"),
+            "--options", json.dumps(tiny_options(checkpoint_every=0))]
+    assert main(args + ["--threads", "-1"]) == 1
+    assert "srfpipe train: error: --threads -1: " in capsys.readouterr().err
+
+
+def test_checkpoints_of_another_run_at_later_steps_do_not_prune_this_runs(tmp_path):
+    from srfpipe.srf.hooks import save_checkpoint
+
+    # a run with other settings got further in the same folder (its checkpoints are never resumed)
+    for step in (30, 40):
+        save_checkpoint(tmp_path, {"step": step, "fingerprint": "other"})
+    save_checkpoint(tmp_path, {"step": 10, "fingerprint": "this"})
+    save_checkpoint(tmp_path, {"step": 20, "fingerprint": "this"})
+    save_checkpoint(tmp_path, {"step": 25, "fingerprint": "this"})
+    names = sorted(p.name for p in tmp_path.glob("step-*.pt"))
+    assert names == ["step-000000020.pt", "step-000000025.pt", "step-000000030.pt", "step-000000040.pt"]
+
+
+def test_a_checkpoint_of_this_run_that_does_not_fit_is_passed_over_naming_it(scene, tmp_path, caplog):
+    _, images, labels = scene
+    ckpt = tmp_path / "ckpt"
+    options = tiny_options(iterations=12, checkpoint_every=5, keep_checkpoints=True)
+    train(images, labels, tmp_path / "a.zarr", options, holdout_every=5, checkpoints=ckpt)
+    # the right fingerprint, tensors of the wrong shape (another srfpipe version, or damaged)
+    newest = ckpt / "step-000000010.pt"
+    state = torch.load(newest, weights_only=True)
+    name = next(iter(state["model"]))
+    state["model"][name] = torch.zeros(3, 3)
+    torch.save(state, newest)
+    with caplog.at_level("WARNING", logger="srfpipe.train"):
+        train(images, labels, tmp_path / "b.zarr", options, holdout_every=5, checkpoints=ckpt)
+    assert read_srf(tmp_path / "b.zarr")[1]["resumed_from_step"] == 5
+    assert any(str(newest) in r.getMessage() and "does not fit" in r.getMessage() for r in caplog.records)
+    # none fits: a fresh run, from the fresh weights (not half of the checkpoint's)
+    for path in ckpt.glob("step-*.pt"):
+        state = torch.load(path, weights_only=True)
+        del state["curve"]
+        torch.save(state, path)
+    train(images, labels, tmp_path / "c.zarr", options, holdout_every=5, checkpoints=ckpt)
+    assert read_srf(tmp_path / "c.zarr")[1]["resumed_from_step"] == 0
+    a, b = read_srf(tmp_path / "a.zarr")[0].state_dict(), read_srf(tmp_path / "c.zarr")[0].state_dict()
+    assert all(torch.allclose(a[k], b[k], atol=1e-5) for k in a)
+
+
+def test_a_checkpoint_write_cut_short_by_a_kill_leaves_nothing_after_the_run(scene, tmp_path):
+    _, images, labels = scene
+    ckpt = tmp_path / "ckpt"
+    ckpt.mkdir()
+    # SIGKILL inside torch.save, at a step this run does not write again (its time budget, or a
+    # changed checkpoint_every, ended it elsewhere)
+    (ckpt / "step-000000004.pt.tmp").write_bytes(b"\x80\x02half a checkpoint")
+    train(images, labels, tmp_path / "srf.zarr", tiny_options(iterations=6, checkpoint_every=5), holdout_every=5,
+          checkpoints=ckpt)
+    assert not ckpt.exists()
+
+
 def test_snapshots_hold_the_weights_at_each_mark_and_outlive_the_run(scene, tmp_path):
     _, images, labels = scene
     ckpt = tmp_path / "ckpt"
@@ -508,6 +596,10 @@ def test_progress_bar_counts_seconds_of_a_time_budget():
     steps.advance(6, 1.0)
     assert steps.bar.total == 100 and steps.bar.n == 6
     steps.close()
+    endless = TrainingProgress(0, 100, 0.0, time_budget=float("inf"))  # YAML .inf, JSON 1e400: counts steps
+    endless.advance(7, 1.0)
+    assert endless.bar.total == 100 and endless.bar.n == 7
+    endless.close()
 
 
 def camera_ring_data(focal: float, distance: float = 3.0, n: int = 8):

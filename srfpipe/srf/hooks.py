@@ -27,20 +27,26 @@ log = logging.getLogger("srfpipe.train")
 
 def latest_checkpoint(folder: Path, fp: str):
     """The checkpoint with the highest step written by a run with fingerprint `fp`, or None."""
+    return next((state for _, state in checkpoints_of(folder, fp)), None)
+
+
+def checkpoints_of(folder: Path, fp: str):
+    """(path, state) of each readable checkpoint written by a run with fingerprint `fp`, the
+    highest step first (a caller that cannot use one goes on to the one before)."""
     import torch
 
     if not folder.is_dir():
-        return None
+        return
     for path in sorted(folder.glob("step-*.pt"), reverse=True):
         try:
             state = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as exc:  # a checkpoint cut short by a kill: try the one before
             log.warning("ignoring unreadable checkpoint %s (%s)", path, exc)
             continue
-        if state.get("fingerprint") == fp:
-            return state
-        log.info("ignoring checkpoint %s from a run with different settings", path)
-    return None
+        if isinstance(state, dict) and state.get("fingerprint") == fp:
+            yield path, state
+        else:
+            log.info("ignoring checkpoint %s from a run with different settings", path)
 
 
 def save_checkpoint(folder: Path, state: dict, keep: int = 2) -> None:
@@ -60,7 +66,9 @@ def save_checkpoint(folder: Path, state: dict, keep: int = 2) -> None:
             raise OSError(getattr(exc, "errno", None) or errno.EIO,
                           f"cannot write the checkpoint ({exc}; {free} bytes free on its disk)", str(path)) from exc
         raise
-    for old in sorted(folder.glob("step-*.pt"))[:-keep]:
+    # the newest `keep` up to this step: a checkpoint of a later step is another run's (other settings,
+    # same folder), and counting it would delete this run's own before the next could replace them
+    for old in sorted(p for p in folder.glob("step-*.pt") if p.name <= path.name)[:-keep]:
         old.unlink(missing_ok=True)
 
 
@@ -182,7 +190,7 @@ class TrainingProgress(Hook):
     def __init__(self, start_step: int, iterations: int, seconds: float, time_budget: float):
         from tqdm import tqdm
 
-        self.by_time = time_budget > 0
+        self.by_time = 0 < time_budget < math.inf  # an infinite budget (`.inf`, 1e400) never ends the run
         if self.by_time:
             self.bar = tqdm(total=round(time_budget), initial=min(round(seconds), round(time_budget)),
                             desc="train", unit="s", dynamic_ncols=True, mininterval=1.0,

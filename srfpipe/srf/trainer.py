@@ -31,7 +31,7 @@ import numpy as np
 from srfpipe import cameras
 from srfpipe.settings import TrainSettings
 from srfpipe.srf.hooks import (Checkpoints, DivergenceWatch, HeldoutEvaluation, MetricsLog, Snapshots, TimeBudget,
-                               TrainingProgress, latest_checkpoint)
+                               TrainingProgress, checkpoints_of)
 from srfpipe.srf.model import BASE_CELLS, TRUSTED_INITIAL_OPACITY, default_features, scene_box
 from srfpipe.srf.warp import looks_one_way, perspective_fits
 
@@ -57,6 +57,8 @@ def run(args) -> int:
     from srfpipe.config import stage_options, validate_scene, load_scene
 
     options = stage_options(args, "train")
+    if args.threads is not None and args.threads < 0:
+        raise ValueError(f"--threads {args.threads}: torch CPU threads must be 1 or more (0: torch's default)")
     holdout = args.holdout_every
     if holdout is None:
         scene = load_scene(args.scene) if args.scene else validate_scene({})
@@ -141,7 +143,7 @@ def group_lr_scale(group: dict, progress: float) -> float:
 def fingerprint(options: dict, model_config: dict, inputs: list[dict]) -> str:
     """Identity of a training run: resume only from checkpoints with the same one."""
     relevant = {k: v for k, v in options.items()
-                if k not in ("checkpoint_every", "log_every", "eval_every", "snapshot_seconds")}
+                if k not in ("checkpoint_every", "keep_checkpoints", "log_every", "eval_every", "snapshot_seconds")}
     blob = json.dumps([relevant, model_config, inputs], sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
@@ -772,7 +774,14 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
     from srfpipe.srf.graphed import GraphedSteps, graph_unavailable
     from srfpipe.srf.model import SRFModel, build_model_config
 
-    device = choose_device(settings.device)
+    ckpt_dir = Path(checkpoints) if checkpoints else out.with_name(out.name.removesuffix(".zarr") + ".ckpt")
+    if (settings.checkpoint_every or settings.snapshot_seconds) and ckpt_dir.exists() and not ckpt_dir.is_dir():
+        # found now, not at the first checkpoint (train.checkpoint_every steps of training lost)
+        raise ValueError(f"{ckpt_dir}: the checkpoint folder is a file; remove it or name another folder (--checkpoints)")
+    try:
+        device = choose_device(settings.device)
+    except RuntimeError as exc:  # no GPU, or a device torch does not know: name the key
+        raise ValueError(f"train.device: {exc}") from exc
     problem = split_pixel_problem(settings.rays_per_batch, settings.supersample)
     if problem:  # callers of train() that skip the scene schema
         raise ValueError(problem)
@@ -816,7 +825,6 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
     scaler = torch.amp.GradScaler("cuda") if precision == "fp16" and device.type == "cuda" else None
     inputs = [{"path": str(p), "created": read_provenance(p).get("created")} for p in (images, labels) if p is not None]
     fp = fingerprint(settings.as_dict(), config, inputs + [{"holdout_every": holdout_every}])
-    ckpt_dir = Path(checkpoints) if checkpoints else out.with_name(out.name.removesuffix(".zarr") + ".ckpt")
     run = TrainingRun(settings, data, holdout_every, train_views, heldout_views, device, model, optimizer, scaler, autocast, precision,
                       fp, ckpt_dir, out, focus, labelled_frames, seen_fraction, watch=None, cameras=cameras)
     if settings.background_opacity and settings.background_rays == "backdrop":
@@ -826,18 +834,12 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
         else:
             colour, level = data.backdrop
             run.backdrop = (torch.tensor(colour, device=device) / 255.0, level)
-    state = latest_checkpoint(ckpt_dir, fp)
-    if state is not None:
-        model.load_state_dict(state["model"])
-        if cameras is not None:
-            cameras.load_state_dict(state["cameras"])
-        optimizer.load_state_dict(state["optimizer"])
-        for group in optimizer.param_groups:  # a CUDA graph's run saved its device-side settings
-            group["lr"], group["capturable"] = float(group["lr"]), False
-        run.step, run.seconds = int(state["step"]), float(state["train_seconds"])
-        run.resumed_from = run.step
-        run.curve = {k: list(v) for k, v in state["curve"].items()}
-        run.eval_curve = {k: list(v) for k, v in state["eval_curve"].items()}
+    resumed = False
+    for path, state in checkpoints_of(ckpt_dir, fp):
+        if resume(run, state, path):
+            resumed = True
+            break
+    if resumed:
         log.info("resuming from %s at step %d", ckpt_dir, run.step)
     elif ckpt_dir.is_dir():
         # a fresh run: snapshots of an earlier run in this folder would mix into its curve
@@ -851,6 +853,35 @@ def start_run(images, labels, out: Path, settings: TrainSettings, holdout_every:
     elif device.type == "cuda":
         log.info("training step by step, not as a CUDA graph: %s", unavailable)
     return run
+
+
+def resume(run: TrainingRun, state: dict, path: Path) -> bool:
+    """Load a checkpoint of this run's fingerprint into the run; False, with a warning naming the
+    file and the run's fresh state kept, when it does not fit (tensors of other shapes, a missing
+    key: written by another version of srfpipe, or damaged)."""
+    import copy
+
+    model, cameras, optimizer = run.model, run.cameras, run.optimizer
+    fresh = [copy.deepcopy(part.state_dict()) for part in (model, cameras, optimizer) if part is not None]
+    try:
+        model.load_state_dict(state["model"])
+        if cameras is not None:
+            cameras.load_state_dict(state["cameras"])
+        optimizer.load_state_dict(state["optimizer"])
+        step, seconds = int(state["step"]), float(state["train_seconds"])
+        curve = {k: list(v) for k, v in state["curve"].items()}
+        eval_curve = {k: list(v) for k, v in state["eval_curve"].items()}
+    except (RuntimeError, ValueError, KeyError, TypeError, AttributeError, IndexError) as exc:
+        log.warning("ignoring checkpoint %s: it does not fit this run (%s: %s)", path, type(exc).__name__,
+                    str(exc).splitlines()[0] if str(exc) else "")
+        for part, saved in zip([p for p in (model, cameras, optimizer) if p is not None], fresh):
+            part.load_state_dict(saved)
+        return False
+    for group in optimizer.param_groups:  # a CUDA graph's run saved its device-side settings
+        group["lr"], group["capturable"] = float(group["lr"]), False
+    run.step, run.seconds, run.resumed_from = step, seconds, step
+    run.curve, run.eval_curve = curve, eval_curve
+    return True
 
 
 def camera_record(run: TrainingRun) -> dict:
@@ -887,7 +918,8 @@ def write_field(run: TrainingRun, images, labels) -> None:
         seen_fraction=run.seen_fraction, **camera_record(run),
     )
     if not run.settings.keep_checkpoints and run.checkpoint_dir.is_dir():
-        for path in run.checkpoint_dir.glob("step-*.pt"):
+        # with the temporary file of a checkpoint whose writing a kill cut short
+        for path in [*run.checkpoint_dir.glob("step-*.pt"), *run.checkpoint_dir.glob("step-*.pt.tmp")]:
             path.unlink()
         with contextlib.suppress(OSError):
             run.checkpoint_dir.rmdir()
