@@ -284,3 +284,20 @@ def test_ctrl_c_stops_a_stage_with_one_line_and_leaves_no_output(tmp_path):
     assert "Traceback" not in stderr and stderr.strip().splitlines()[-1] == (
         "srfpipe orchard: interrupted: its output was not written")
     assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("options, key", [
+    ({"fov_deg": 179.9999999}, "fov_deg"),  # fx ~1e-8 px: the poses stage refused the capture written
+    ({"fov_deg": 1e-9}, "fov_deg"),  # fx ~2e12 px
+    ({"distortion": [50, 50, 0, 0]}, "distortion"),  # a lens mapping most of the frame outside it
+    ({"ring_radius": 1e-12}, "ring_radius"),  # every camera straight below the canopy centre
+    ({"ring_radius": 1e300}, "ring_radius"),
+])
+def test_cameras_the_poses_stage_would_refuse_are_refused_naming_the_key(tmp_path, options, key):
+    from srfpipe.config import ConfigError
+
+    out = tmp_path / "capture"
+    with pytest.raises(ConfigError, match=f"orchard .*{key}"):
+        generate_orchard(out, progress=False, views=2, width=32, height=24, **options)
+    assert not out.exists() and list(tmp_path.iterdir()) == []

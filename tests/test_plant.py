@@ -284,3 +284,17 @@ def test_images_zarr_without_class_names_reads_as_an_orchard(tmp_path):
     assert load_posed_images(path).gt_classes == ORCHARD_GT_CLASSES
     update_attrs(zarr.open_group(str(path), mode="r+"), ground_truth_classes=CLASSES)
     assert load_posed_images(path).gt_classes == CLASSES
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("options, key", [
+    ({"distance": 1e-9}, "distance"),  # every camera at the plant's centre: refused by the poses stage
+    ({"fov_deg": 175}, "fov_deg"),
+])
+def test_cameras_the_poses_stage_would_refuse_are_refused_naming_the_key(tmp_path, options, key):
+    from srfpipe.config import ConfigError
+
+    out = tmp_path / "capture"
+    with pytest.raises(ConfigError, match=f"plant .*{key}"):
+        generate_plant(out, progress=False, views=2, width=32, height=24, **options)
+    assert not out.exists() and list(tmp_path.iterdir()) == []

@@ -74,6 +74,24 @@ def orbit_poses(views: int, heights: list[float], radius: float, target: np.ndar
                      for a, h in zip(azimuths, climb)])
 
 
+def check_views(section: str, poses: np.ndarray, intrinsics: np.ndarray, width: int, height: int,
+                distortion=None, ring_keys: str = "ring_radius, ring_heights") -> None:
+    """Raise ConfigError, naming the generator's keys, for cameras whose capture the poses stage
+    would refuse (`srfpipe.poses.geometry`): a focal length no camera has (fov_deg near 0 or 180),
+    a lens mapping most of the frame outside it, every camera at one point (`ring_keys` place them).
+    Called before rendering, so that nothing is written."""
+    from srfpipe.config import ConfigError
+    from srfpipe.poses.geometry import check_camera_model, check_camera_spread
+
+    lens = np.zeros(4) if distortion is None else np.asarray(distortion, np.float64)
+    keys = "fov_deg, width, height" + (", distortion" if distortion is not None else "")
+    try:
+        check_camera_model(intrinsics, lens, (width, height), f"{section} ({keys})")
+        check_camera_spread(poses, f"{section} ({ring_keys})")
+    except ValueError as exc:
+        raise ConfigError(f"{exc}; the poses stage would refuse this capture") from None
+
+
 def write_video(frames: list[Path], path: Path, fps: float) -> None:
     """The image files `frames`, in order, as a Motion-JPEG AVI (OpenCV's own encoder, present in
     every build; quality 95): what a phone's video gives the `video` source format."""

@@ -29,8 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from srfpipe.config import stage_options, validate_scene
-from srfpipe.scenes.capture import add_generator_arguments, intrinsics_for, orbit_poses, ring_poses, write_capture
+from srfpipe.config import ConfigError, stage_options, validate_scene
+from srfpipe.scenes.capture import (
+    add_generator_arguments, check_views, intrinsics_for, orbit_poses, ring_poses, write_capture,
+)
 from srfpipe.scenes.raycast import light_direction
 
 log = logging.getLogger(__name__)
@@ -81,12 +83,18 @@ def generate_orchard(out_dir: str | Path, progress: bool = True, **options) -> P
                     len(tree.apple_centres), params["n_apples"])
     sun = sun_direction(rng)
     target = np.array([0.0, 0.0, 0.55 * params["tree_height"]])
-    if params.get("video"):
-        poses = orbit_poses(params["views"], params["ring_heights"], params["ring_radius"], target)
-    else:
-        poses = ring_poses(params["views"], params["ring_heights"], params["ring_radius"], target, rng,
-                           arc_deg=params.get("arc_deg"))
+    try:
+        if params.get("video"):
+            poses = orbit_poses(params["views"], params["ring_heights"], params["ring_radius"], target)
+        else:
+            poses = ring_poses(params["views"], params["ring_heights"], params["ring_radius"], target, rng,
+                               arc_deg=params.get("arc_deg"))
+    except ValueError as exc:  # look_at: a camera straight below or above the canopy centre, or overflowing
+        raise ConfigError(f"orchard (ring_radius {params['ring_radius']:g}, ring_heights {params['ring_heights']}): "
+                          f"a camera cannot be aimed at the tree ({exc})") from None
     width, height = params["width"], params["height"]
+    check_views("orchard", poses, intrinsics_for(width, height, params["fov_deg"]), width, height,
+                params.get("distortion"))
     scene = {
         "world_frame": "metres, z up, ground plane z = 0, trunk base at the origin",
         "units": "metre",

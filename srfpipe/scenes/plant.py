@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from srfpipe.config import stage_options, validate_scene
-from srfpipe.scenes.capture import add_generator_arguments, intrinsics_for, ring_poses, write_capture
+from srfpipe.config import ConfigError, stage_options, validate_scene
+from srfpipe.scenes.capture import add_generator_arguments, check_views, intrinsics_for, ring_poses, write_capture
 from srfpipe.scenes.raycast import (
     Lighting, Part, Renderer, mix_colours, fbm, leaf_albedo, light_direction, spots, value_noise,
 )
@@ -127,8 +127,14 @@ def generate_plant(out_dir: str | Path, progress: bool = True, **options) -> Pat
     light = light_direction(rng, LIGHT_ELEVATION_DEG)
     box = sapling.bounds
     target = box.mean(0)
-    poses = camera_poses(params["views"], params["elevations_deg"], params["distance"], target, rng)
+    try:
+        poses = camera_poses(params["views"], params["elevations_deg"], params["distance"], target, rng)
+    except ValueError as exc:  # look_at: a camera straight below or above the plant's centre
+        raise ConfigError(f"plant (distance {params['distance']:g}, elevations_deg {params['elevations_deg']}): "
+                          f"a camera cannot be aimed at the plant ({exc})") from None
     width, height = params["width"], params["height"]
+    check_views("plant", poses, intrinsics_for(width, height, params["fov_deg"]), width, height,
+                ring_keys="distance, elevations_deg")
     lighting = Lighting(light, backdrop(seed), ambient=AMBIENT, sun_strength=KEY_LIGHT,
                         shadow_bias=SHADOW_BIAS * params["plant_height"])
     scene = {
