@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import difflib
+import math
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
@@ -67,6 +68,9 @@ def validate_scene(scene: dict, source: str = "<scene>", whole: bool = False) ->
     named_roles = {role: occupancy[role] for role in ("reach", "avoid")
                    if isinstance(occupancy, dict) and role in occupancy}
     knows_prompts = whole or "segmentation" in scene
+    non_finite = list(_non_finite_numbers(scene))
+    if non_finite:  # JSON's NaN and Infinity, YAML's .nan and .inf: a schema's minimum lets NaN and inf through
+        raise ConfigError("\n".join(f"{source}: {key}: {value} is not a finite number" for key, value in non_finite))
     apply_preset(scene)
     check_schema(scene, "scene.schema.yaml", source)
     resolve_conditional_defaults(scene)
@@ -76,6 +80,18 @@ def validate_scene(scene: dict, source: str = "<scene>", whole: bool = False) ->
     if problems:
         raise ConfigError("\n".join(f"{source}: {problem}" for problem in problems))
     return scene
+
+
+def _non_finite_numbers(value, key: str = ""):
+    """(dotted key, value) of every NaN or infinite float in a config's nested dicts and lists."""
+    if isinstance(value, float) and not math.isfinite(value):
+        yield key or "(top level)", value
+    elif isinstance(value, dict):
+        for name, item in value.items():
+            yield from _non_finite_numbers(item, f"{key}.{name}" if key else str(name))
+    elif isinstance(value, list):
+        for index, item in enumerate(value):
+            yield from _non_finite_numbers(item, f"{key}[{index}]")
 
 
 def check_schema(instance: dict, schema: str, source: str) -> None:

@@ -137,3 +137,23 @@ def test_an_unknown_preset_is_a_clear_error():
 
     with pytest.raises(ConfigError, match=r"scene.yaml: preset: 'quick' is not one of"):
         validate_scene({"preset": "quick"}, "scene.yaml")
+
+
+@pytest.mark.bad_input
+def test_nan_and_infinity_are_refused_naming_the_key(tmp_path):
+    # JSON's NaN / Infinity and YAML's .nan / .inf pass the schema's minimum: an orchard with
+    # ring_radius Infinity was rendered with NaN poses, tree_height NaN failed inside numpy
+    path = tmp_path / "bad.yaml"
+    path.write_text("orchard:\n  tree_height: .nan\n")
+    with pytest.raises(ConfigError, match=r"bad.yaml: orchard.tree_height: nan is not a finite number"):
+        load_scene(path)
+    with pytest.raises(ConfigError, match=r"orchard.ring_radius: inf is not a finite number"):
+        validate_scene({"orchard": {"ring_radius": float("inf")}}, "--options")
+    with pytest.raises(ConfigError, match=r"poses.bounds\[1\]\[2\]: -inf is not a finite number"):
+        validate_scene({"poses": {"bounds": [[0, 0, 0], [1, 1, float("-inf")]]}})
+    with pytest.raises(ConfigError, match=r"plant.elevations_deg\[0\]: nan"):
+        validate_scene({"plant": {"elevations_deg": [float("nan")]}})
+
+
+def test_nan_refusal_leaves_finite_values_alone():
+    assert validate_scene({"poses": {"perturb_rot_deg": 1e300}})["poses"]["perturb_rot_deg"] == 1e300
