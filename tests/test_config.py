@@ -157,3 +157,11 @@ def test_nan_and_infinity_are_refused_naming_the_key(tmp_path):
 
 def test_nan_refusal_leaves_finite_values_alone():
     assert validate_scene({"poses": {"perturb_rot_deg": 1e300}})["poses"]["perturb_rot_deg"] == 1e300
+
+
+@pytest.mark.bad_input
+def test_a_negative_perturb_seed_is_refused_naming_the_key():
+    # numpy's generator takes no negative seed: the poses stage failed with a bare
+    # "expected non-negative integer", after the import
+    with pytest.raises(ConfigError, match="poses.perturb_seed: -5 is less than the minimum of 0"):
+        validate_scene({"poses": {"perturb_rot_deg": 1.0, "perturb_seed": -5}}, "--options")
