@@ -447,6 +447,22 @@ def test_cli_reports_bad_input_in_one_line(tmp_path, capsys):
     assert not (tmp_path / "poses.zarr").exists()
 
 
+
+@pytest.mark.bad_input
+def test_colmap_refinement_of_two_images_is_refused_before_colmap_runs(tmp_path, monkeypatch):
+    # the refined cameras are aligned back onto at least 3 given ones: two images went through SIFT,
+    # matching and triangulation and then always failed, with a message about matches
+    import pycolmap
+
+    def not_reached(*args, **kwargs):
+        raise AssertionError("COLMAP ran")
+
+    monkeypatch.setattr(pycolmap, "extract_features", not_reached)
+    write_nerfstudio(tmp_path / "cap", ring(2))
+    with pytest.raises(ValueError, match=r"transforms.json: poses.refine colmap needs at least 3 images.*got 2"):
+        import_poses({"format": "nerfstudio"}, tmp_path / "cap", {"refine": "colmap"}, tmp_path / "poses.zarr")
+    assert not (tmp_path / "poses.zarr").exists()
+
 # ----------------------------------------------------------------------------- package structure
 
 # Each module of srfpipe/poses may import only modules before it: the importers and the bounds build

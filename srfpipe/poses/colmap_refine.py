@@ -55,6 +55,7 @@ LOOSE_REPROJ_PX = 24.0
 FILTER_REPROJ_PX = 4.0  # COLMAP's default outlier threshold
 FILTER_MIN_TRI_ANGLE_DEG = 1.5
 MIN_OBSERVATIONS = 100  # fewer observed points than this: the image keeps its given pose (see refine_poses)
+MIN_REFINED_IMAGES = 3  # images with MIN_OBSERVATIONS points each that the gauge alignment needs
 
 
 @dataclass
@@ -293,8 +294,9 @@ def refine_poses(capture: Capture, camera_to_world: np.ndarray, matcher: str = "
     import pycolmap
 
     n = len(capture.image_paths)
-    if n < 2:
-        raise ValueError(f"{capture.source_file}: COLMAP refinement needs at least 2 images, got {n}")
+    if n < MIN_REFINED_IMAGES:  # the gauge is aligned back on the refined cameras: 2 could never pass
+        raise ValueError(f"{capture.source_file}: poses.refine colmap needs at least {MIN_REFINED_IMAGES} images "
+                         f"(the refined cameras are aligned back onto the given ones), got {n}")
     matcher = choose_matcher(matcher, n)
     if matcher == "poses" and any(len(name.split()) != 1 for name in capture.image_paths):
         # COLMAP's pair list is split at spaces
@@ -363,7 +365,7 @@ def refine_poses(capture: Capture, camera_to_world: np.ndarray, matcher: str = "
     refined = _poses_in_order(reconstruction, n)
     observed = np.array([reconstruction.images[i + 1].num_points3D for i in range(n)])
     constrained = observed >= MIN_OBSERVATIONS
-    if constrained.sum() < 3:
+    if constrained.sum() < MIN_REFINED_IMAGES:
         raise RuntimeError(
             f"{capture.root}: COLMAP refinement constrained only {int(constrained.sum())} of {n} images "
             f"(>= {MIN_OBSERVATIONS} points each); too few matches to refine the poses"
