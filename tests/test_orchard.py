@@ -301,3 +301,12 @@ def test_cameras_the_poses_stage_would_refuse_are_refused_naming_the_key(tmp_pat
     with pytest.raises(ConfigError, match=f"orchard .*{key}"):
         generate_orchard(out, progress=False, views=2, width=32, height=24, **options)
     assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.bad_input
+def test_a_capture_in_which_no_view_shows_the_tree_is_refused(tmp_path):
+    # a 1 nm tree covers no pixel: every view was all background, written as a capture like any other
+    out = tmp_path / "capture"
+    with pytest.raises(ValueError, match=r"no pixel of the 2 views shows the subject .*orchard.tree_height"):
+        generate_orchard(out, progress=False, views=2, width=32, height=24, tree_height=1e-9)
+    assert not out.exists() and list(tmp_path.iterdir()) == []

@@ -298,3 +298,11 @@ def test_cameras_the_poses_stage_would_refuse_are_refused_naming_the_key(tmp_pat
     with pytest.raises(ConfigError, match=f"plant .*{key}"):
         generate_plant(out, progress=False, views=2, width=32, height=24, **options)
     assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.bad_input
+def test_a_capture_in_which_no_view_shows_the_plant_is_refused(tmp_path):
+    out = tmp_path / "capture"
+    with pytest.raises(ValueError, match=r"no pixel of the 2 views shows the subject .*plant.plant_height"):
+        generate_plant(out, progress=False, views=2, width=32, height=24, plant_height=1e-9)
+    assert not out.exists() and list(tmp_path.iterdir()) == []

@@ -208,7 +208,7 @@ def write_capture(
     out: str | Path, renderer, poses: np.ndarray, intrinsics: np.ndarray, width: int, height: int,
     classes: list[str], meshes: dict, scene: dict, files: dict | None = None, progress: bool = True,
     desc: str = "views", sensor_noise: float = 0.0, noise_seed: int = 0, distortion=None,
-    video_fps: float | None = None,
+    video_fps: float | None = None, subject_keys: str = "",
 ) -> dict:
     """Render every pose and write the capture folder atomically; returns scene.json as written.
 
@@ -217,7 +217,9 @@ def write_capture(
     names to JSON-able values (e.g. apples.json). `sensor_noise` (8-bit levels, 0 = none) is drawn
     per view from `noise_seed`. `distortion` (k1, k2, p1, p2) renders through an OpenCV lens, and
     transforms.json records it. With `video_fps`, the views (in order) are also written as the
-    video `VIDEO_FILE` at that frame rate, frame i being view i.
+    video `VIDEO_FILE` at that frame rate, frame i being view i. A capture in which no view shows
+    anything but the background class is refused (ValueError naming `subject_keys`, the keys that
+    size and frame the subject), and nothing is written.
     """
     out = Path(out)
     names = frame_names(len(poses))
@@ -227,6 +229,9 @@ def write_capture(
             folder.mkdir(parents=True)
         class_pixels = _render_views(renderer, poses, intrinsics, width, height, names, tmp, len(classes),
                                      progress, desc, sensor_noise, noise_seed, distortion)
+        if not class_pixels[1:].any():
+            raise ValueError(f"{out}: no pixel of the {len(poses)} views shows the subject (all {classes[0]}): "
+                             f"it is too small, or out of view; check {subject_keys or 'the options'}")
         for mesh_name, mesh in meshes.items():
             write_mesh(gt / "meshes" / f"{mesh_name}.ply", mesh)
         for file_name, value in (files or {}).items():

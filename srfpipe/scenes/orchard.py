@@ -111,6 +111,7 @@ def generate_orchard(out_dir: str | Path, progress: bool = True, **options) -> P
                                       for c in tree.apple_centres]},
         progress=progress, desc="orchard views", distortion=params.get("distortion"),
         video_fps=VIDEO_FPS if params.get("video") else None,
+        subject_keys="orchard.tree_height, ring_radius, ring_heights, fov_deg",
     )
     log.info(
         "orchard seed %d: %d segments, %d leaves, %d apples; %d views of %dx%d in %.1f s -> %s",

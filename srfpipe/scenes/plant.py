@@ -153,6 +153,7 @@ def generate_plant(out_dir: str | Path, progress: bool = True, **options) -> Pat
         {"stem": sapling.stem, "leaf": sapling.leaf, "berry": sapling.berry}, scene,
         files={"berries.json": berries}, progress=progress, desc="plant views",
         sensor_noise=params["sensor_noise"], noise_seed=seed,
+        subject_keys="plant.plant_height, distance, fov_deg",
     )
     log.info(
         "plant seed %d: %d twigs, %d leaves, %d berries, box %s mm; %d views of %dx%d in %.1f s -> %s",
