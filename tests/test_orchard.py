@@ -310,3 +310,24 @@ def test_a_capture_in_which_no_view_shows_the_tree_is_refused(tmp_path):
     with pytest.raises(ValueError, match=r"no pixel of the 2 views shows the subject .*orchard.tree_height"):
         generate_orchard(out, progress=False, views=2, width=32, height=24, tree_height=1e-9)
     assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.bad_input
+def test_more_apples_than_the_tree_holds_stop_when_it_is_full(monkeypatch):
+    # n_apples 1e6 tried 200 places per apple asked for (2e8 tries, hours) on a tree holding ~230
+    from srfpipe.scenes import tree
+
+    monkeypatch.setattr(tree, "APPLE_TRY_BUDGET", 2000, raising=False)
+    monkeypatch.setattr(tree, "APPLE_MAX_MISSES", 500, raising=False)
+    tries = []
+    distance = tree.point_segment_distance
+
+    def counted(*args):
+        tries.append(1)
+        if len(tries) > 100_000:
+            raise AssertionError("still trying after 100 000 places")
+        return distance(*args)
+
+    monkeypatch.setattr(tree, "point_segment_distance", counted)
+    built = tree.build_tree(0, 10**6, 2, 0.0, 2.5)
+    assert 0 < built.info["n_apples"] < 1000

@@ -306,3 +306,24 @@ def test_a_capture_in_which_no_view_shows_the_plant_is_refused(tmp_path):
     with pytest.raises(ValueError, match=r"no pixel of the 2 views shows the subject .*plant.plant_height"):
         generate_plant(out, progress=False, views=2, width=32, height=24, plant_height=1e-9)
     assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.bad_input
+def test_more_berries_than_the_plant_holds_stop_when_it_is_full(monkeypatch):
+    # n_berries 1e6 tried 60 places per berry asked for (6e7 tries) on a plant holding ~150
+    from srfpipe.scenes import sapling
+
+    monkeypatch.setattr(sapling, "BERRY_TRY_BUDGET", 2000, raising=False)
+    monkeypatch.setattr(sapling, "BERRY_MAX_MISSES", 500, raising=False)
+    tries = []
+    distance = sapling.point_segment_distance
+
+    def counted(*args):
+        tries.append(1)
+        if len(tries) > 100_000:
+            raise AssertionError("still trying after 100 000 places")
+        return distance(*args)
+
+    monkeypatch.setattr(sapling, "point_segment_distance", counted)
+    built = sapling.build_sapling(0, 300, 8, 0, 10**6)
+    assert 0 < built.info["n_berries"] < 1000

@@ -137,6 +137,10 @@ def _leaves(rng, stem, twigs, leaves_per_twig: int, height: float):
     return centres, normals, blades, lengths, stalks
 
 
+BERRY_TRY_BUDGET = 60_000  # _hang_berries, past this many tries (1000 berries' 60 each: fewer asked, unchanged) ...
+BERRY_MAX_MISSES = 6_000  # ... gives up after this many in a row without room: the plant is full
+
+
 def _hang_berries(rng, twigs, wood, n_berries: int, height: float):
     """Berry centres in clusters near twig tips, each on its own stalk; none touch each other or wood."""
     radius = BERRY_RADIUS * height
@@ -146,8 +150,8 @@ def _hang_berries(rng, twigs, wood, n_berries: int, height: float):
     centres: list[np.ndarray] = []
     stalks: list[Segment] = []
     misses = 0
-    for _ in range(60 * max(n_berries, 1)):
-        if len(centres) >= n_berries or not twigs:
+    for tries in range(60 * max(n_berries, 1)):
+        if len(centres) >= n_berries or not twigs or (tries >= BERRY_TRY_BUDGET and misses >= BERRY_MAX_MISSES):
             break
         if misses % 20 == 0 and (misses or len(centres) % BERRIES_PER_CLUSTER == 0):
             # a new cluster on another twig, or a crowded anchor given up

@@ -266,6 +266,10 @@ def _scatter_leaves(rng, segments, leaf_density: float, depth: int):
     return np.concatenate(centres), np.concatenate(normals), np.concatenate(directions)
 
 
+APPLE_TRY_BUDGET = 200_000  # _hang_apples, past this many tries (1000 apples' 200 each: fewer asked, unchanged) ...
+APPLE_MAX_MISSES = 20_000  # ... gives up after this many in a row without room: the tree is full
+
+
 def _hang_apples(rng, segments, n_apples: int, depth: int, radius: float) -> np.ndarray:
     """Apple centres hung just below points on outer branches, not touching wood or each other."""
     candidates = [s for s in segments if s.level >= max(1, depth - 1)] or segments[1:] or segments
@@ -275,9 +279,11 @@ def _hang_apples(rng, segments, n_apples: int, depth: int, radius: float) -> np.
     lengths = np.array([np.linalg.norm(s.end - s.start) for s in candidates])
     weights = lengths / lengths.sum()
     centres: list[np.ndarray] = []
-    for _ in range(200 * max(n_apples, 1)):
-        if len(centres) >= n_apples:
+    misses = 0  # tries in a row that found no room: the tree is full (it holds a few hundred)
+    for tries in range(200 * max(n_apples, 1)):
+        if len(centres) >= n_apples or (tries >= APPLE_TRY_BUDGET and misses >= APPLE_MAX_MISSES):
             break
+        misses += 1
         seg = candidates[rng.choice(len(candidates), p=weights)]
         point = seg.start + rng.uniform(0.3, 1.0) * (seg.end - seg.start)
         # a short stalk: the apple hangs below its branch, a little to one side
@@ -292,6 +298,7 @@ def _hang_apples(rng, segments, n_apples: int, depth: int, radius: float) -> np.
             continue
         if centres and np.min(np.linalg.norm(np.array(centres) - centre, axis=1)) < 2.1 * radius:
             continue
+        misses = 0
         centres.append(centre)
     return np.array(centres).reshape(-1, 3)
 
