@@ -317,8 +317,8 @@ def test_more_apples_than_the_tree_holds_stop_when_it_is_full(monkeypatch):
     # n_apples 1e6 tried 200 places per apple asked for (2e8 tries, hours) on a tree holding ~230
     from srfpipe.scenes import tree
 
-    monkeypatch.setattr(tree, "APPLE_TRY_BUDGET", 2000, raising=False)
-    monkeypatch.setattr(tree, "APPLE_MAX_MISSES", 500, raising=False)
+    monkeypatch.setattr(tree, "APPLE_TRY_BUDGET", 2000)
+    monkeypatch.setattr(tree, "APPLE_MAX_MISSES", 500)
     tries = []
     distance = tree.point_segment_distance
 

@@ -313,8 +313,8 @@ def test_more_berries_than_the_plant_holds_stop_when_it_is_full(monkeypatch):
     # n_berries 1e6 tried 60 places per berry asked for (6e7 tries) on a plant holding ~150
     from srfpipe.scenes import sapling
 
-    monkeypatch.setattr(sapling, "BERRY_TRY_BUDGET", 2000, raising=False)
-    monkeypatch.setattr(sapling, "BERRY_MAX_MISSES", 500, raising=False)
+    monkeypatch.setattr(sapling, "BERRY_TRY_BUDGET", 2000)
+    monkeypatch.setattr(sapling, "BERRY_MAX_MISSES", 500)
     tries = []
     distance = sapling.point_segment_distance
 
