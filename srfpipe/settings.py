@@ -365,8 +365,9 @@ class TrainSettings(SettingsSection):
     beyond the field) reads. null = from the capture: 2 (the direction itself: a smooth function
     that a new view between the training views ..."""
     appearance_dim: int | None = None
-    """per-image appearance embedding size (0 = off; null = 8 for real captures, whose exposure and
-    white balance vary from image to image, 0 for generated ones with ground truth)"""
+    """per-image appearance embedding size (0 = off; null = 8 for a real capture whose images form a
+    sequence, a video or a walk, whose frames vary in exposure and white balance and a new view
+    borrows its neighbours' appearance; 0 for photos in ..."""
     appearance_model: str = 'latent'
     """how the per-image appearance acts: latent (an input of the colour MLP, as NeRF-W and
     Nerfacto) or affine (a colour matrix and offset applied to each image's rendered pixels:

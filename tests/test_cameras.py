@@ -84,3 +84,19 @@ def test_rays_of_a_lens_pass_through_what_the_lens_projects_to_each_pixel():
     np.testing.assert_allclose(projected.reshape(height, width, 2), np.stack([u, v], -1), atol=1e-6)
     pinhole = cameras.pixel_rays(pose, k, width, height)[1]
     assert np.degrees(np.arccos(np.clip((pinhole * directions).sum(-1), -1, 1))).max() > 0.5  # it matters
+
+
+def test_sequence_fraction_tells_a_video_from_photos_in_no_order():
+    """A walk's frames stand next to the frames named before and after them, frame_9 next to
+    frame_10 (natural order, not the strings'); photos named in no such order score near chance."""
+    from srfpipe.cameras import images_form_a_sequence, look_at, natural_order, sequence_fraction
+
+    path = [look_at(np.array([0.3 * i, np.sin(0.2 * i), 1.0]), np.array([0.3 * i, 5.0, 0.0])) for i in range(30)]
+    names = [f"frame_{i}" for i in range(30)]
+    assert natural_order(["frame_10", "frame_9", "frame_1"]) == [2, 1, 0]
+    assert sequence_fraction(names, np.stack(path)) == 1.0
+    shuffled = np.random.default_rng(1).permutation(30)
+    assert sequence_fraction([names[i] for i in shuffled], np.stack(path)) < 0.2
+    assert images_form_a_sequence(names, np.stack(path))
+    assert not images_form_a_sequence([names[i] for i in shuffled], np.stack(path))
+    assert sequence_fraction(names[:2], np.stack(path[:2])) == 0.0  # two images make no sequence
